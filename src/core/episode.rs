@@ -1,0 +1,191 @@
+//! The per-environment episode state and the incremental shaping of one step
+//! (SPEC §2–§5).
+//!
+//! An [`Episode`] keeps `dis_i(t)` for every trajectory of the pool version it last saw,
+//! so a step costs O(|D|) plus the top-k selection, independent of t. When the pool has
+//! changed since the previous step (another stream inserted, replaced or reset), the
+//! distances are re-aligned by seq: kept for trajectories still there, computed once from
+//! the recorded prefix for new ones (O(t) once per new trajectory).
+
+use super::actions::{delta, ActionRef, ActionSeq};
+use super::config::TaskConfig;
+use super::knn::{knn_f, reward_from_f, KnnScratch};
+use super::pool::Pool;
+use super::potential::{potential, Values};
+
+/// One environment step as the core needs it (already validated).
+#[derive(Debug, Clone, Copy)]
+pub struct StepInput<'a> {
+    /// The action taken at this step.
+    pub action: ActionRef<'a>,
+    /// The environment reward R (finite).
+    pub reward: f64,
+    /// The step reached a terminal state.
+    pub terminated: bool,
+    /// The step hit a time limit (or was otherwise cut off).
+    pub truncated: bool,
+    /// Value estimates for the potential term.
+    pub values: Values<'a>,
+    /// Client-supplied episode score; only meaningful on an episode's last step.
+    pub score: Option<f64>,
+}
+
+/// The shaped reward of one step and its parts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOutput {
+    /// R_meta = R + α·r(t) + β·F.
+    pub reward: f64,
+    /// r(t).
+    pub knn_reward: f64,
+    /// F.
+    pub potential: f64,
+    /// t, the step index within the episode.
+    pub step: u64,
+    /// Whether the kNN term was active.
+    pub knn_active: bool,
+}
+
+/// A finished episode, ready to be offered to the pool.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeEnd {
+    /// The first `min(L, max_trajectory_len)` actions.
+    pub actions: ActionSeq,
+    /// The client score, or the sum of the episode's environment rewards.
+    pub score: f64,
+}
+
+/// Episode state of one environment.
+#[derive(Debug, Clone)]
+pub struct Episode {
+    /// Index of the next step (= steps taken so far in this episode).
+    t: u64,
+    /// Actions recorded so far (capped at max_trajectory_len).
+    recorded: ActionSeq,
+    /// Σ R over the episode.
+    reward_sum: f64,
+    /// The pool version `seqs`/`dis` are aligned with; `None` before the first sync.
+    synced_version: Option<u64>,
+    /// Seqs of the trajectories `dis` refers to.
+    seqs: Vec<u64>,
+    /// dis_i over the steps taken so far (j < min(t, L_i)).
+    dis: Vec<f64>,
+}
+
+impl Episode {
+    /// A fresh episode for a task whose actions have `action_dim` floats (0 = discrete).
+    pub fn new(action_dim: usize) -> Episode {
+        Episode {
+            t: 0,
+            recorded: ActionSeq::empty(action_dim),
+            reward_sum: 0.0,
+            synced_version: None,
+            seqs: Vec::new(),
+            dis: Vec::new(),
+        }
+    }
+
+    /// Index of the next step.
+    pub fn t(&self) -> u64 {
+        self.t
+    }
+
+    /// Brings `dis` in line with the pool's current contents.
+    fn sync(&mut self, pool: &Pool) {
+        if self.synced_version == Some(pool.version()) {
+            return;
+        }
+        let mut dis = Vec::with_capacity(pool.len());
+        let mut old = 0;
+        for (traj, &seq) in pool.trajectories().iter().zip(pool.seqs()) {
+            // Both lists are sorted by seq and seqs are never reused: a merge walk.
+            while old < self.seqs.len() && self.seqs[old] < seq {
+                old += 1;
+            }
+            if old < self.seqs.len() && self.seqs[old] == seq {
+                dis.push(self.dis[old]);
+            } else {
+                let upto = (self.t as usize)
+                    .min(traj.actions.len())
+                    .min(self.recorded.len());
+                dis.push(
+                    (0..upto)
+                        .map(|j| delta(traj.actions.get(j), self.recorded.get(j)))
+                        .sum(),
+                );
+            }
+        }
+        self.seqs.clear();
+        self.seqs.extend_from_slice(pool.seqs());
+        self.dis = dis;
+        self.synced_version = Some(pool.version());
+    }
+
+    /// Shapes one step against `pool` as it is now, and returns the finished episode if
+    /// this step ended it (the caller offers it to the pool after this step was shaped).
+    pub fn step(
+        &mut self,
+        cfg: &TaskConfig,
+        pool: &Pool,
+        input: &StepInput<'_>,
+        scratch: &mut KnnScratch,
+    ) -> (StepOutput, Option<EpisodeEnd>) {
+        self.sync(pool);
+        let t = self.t as usize;
+        for ((d, traj), &len) in self
+            .dis
+            .iter_mut()
+            .zip(pool.trajectories())
+            .zip(pool.lens())
+        {
+            if t < len {
+                *d += delta(traj.actions.get(t), input.action);
+            }
+        }
+        if t < cfg.max_trajectory_len as usize {
+            self.recorded.push(input.action);
+        }
+        self.reward_sum += input.reward;
+
+        let active = pool.len() >= cfg.min_pool_size as usize
+            && t >= cfg.start_step as usize
+            && t < pool.l_min()
+            && t < cfg.max_trajectory_len as usize;
+        let knn_reward = if active {
+            reward_from_f(knn_f(
+                &self.dis,
+                pool.xs(),
+                pool.seqs(),
+                cfg.k as usize,
+                scratch,
+            ))
+        } else {
+            0.0
+        };
+        let f = potential(input.values, cfg.gamma, input.terminated);
+        let output = StepOutput {
+            reward: input.reward + cfg.alpha * knn_reward + cfg.beta * f,
+            knn_reward,
+            potential: f,
+            step: self.t,
+            knn_active: active,
+        };
+        self.t += 1;
+
+        let end = if input.terminated || input.truncated {
+            let score = input.score.unwrap_or(self.reward_sum);
+            let actions = std::mem::replace(&mut self.recorded, ActionSeq::empty(0));
+            self.recorded = ActionSeq::empty(match &actions {
+                ActionSeq::Discrete(_) => 0,
+                ActionSeq::Continuous { dim, .. } => *dim,
+            });
+            self.t = 0;
+            self.reward_sum = 0.0;
+            // Every distance of the empty prefix is 0; the seqs stay valid.
+            self.dis.iter_mut().for_each(|d| *d = 0.0);
+            Some(EpisodeEnd { actions, score })
+        } else {
+            None
+        };
+        (output, end)
+    }
+}
