@@ -16,3 +16,9 @@ pub mod proto {
     /// The encoded descriptor set of `proto/`, served by gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("tamrm_descriptor");
 }
+pub mod error;
+pub mod registry;
+pub mod server;
+pub mod service;
+pub mod settings;
+pub mod store;

@@ -1,0 +1,47 @@
+//! The service's error type. Every failure a client can cause or observe is one of these;
+//! `service::status` is the one place that maps them to gRPC status codes.
+
+use crate::store::StoreError;
+
+/// An error answered to a client.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A malformed request; `field` names the offending field (proto path).
+    #[error("{field}: {message}")]
+    InvalidArgument {
+        /// The offending field, e.g. `steps.actions[3]` or `config.k`.
+        field: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// No task with this id.
+    #[error("task {0:?} not found")]
+    TaskNotFound(String),
+    /// CreateTask for an existing id with a different resolved config.
+    #[error("task {id:?} already exists with a different config ({detail})")]
+    AlreadyExists {
+        /// The task id.
+        id: String,
+        /// Which fields differ.
+        detail: String,
+    },
+    /// A configured server limit was reached.
+    #[error("{0}")]
+    ResourceExhausted(String),
+    /// The server is shutting down; reconnect to another (or the restarted) server.
+    #[error("server is shutting down")]
+    ShuttingDown,
+    /// Persisting a change failed; the change was not applied.
+    #[error("storage error, change not applied: {0}")]
+    Storage(#[from] StoreError),
+}
+
+impl Error {
+    /// An [`Error::InvalidArgument`] for `field`.
+    pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Error {
+        Error::InvalidArgument {
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+}

@@ -1,0 +1,187 @@
+//! Assembles and runs the gRPC server: Shaping, grpc.health.v1 and server reflection,
+//! with graceful shutdown.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_stream::wrappers::TcpListenerStream;
+use tokio_util::sync::CancellationToken;
+use tonic::transport::Server;
+
+use crate::proto::shaping_server::ShapingServer;
+use crate::registry::Registry;
+use crate::service::status::is_size_limit;
+use crate::service::ShapingService;
+use crate::settings::Settings;
+use crate::store::{DiskStore, MemoryStore, Store};
+
+/// Why the server could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    /// The data directory could not be opened or holds corrupt state.
+    #[error("cannot restore state: {0}")]
+    Store(#[from] crate::store::StoreError),
+    /// The listen address could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The port file could not be written.
+    #[error("cannot write port file: {0}")]
+    PortFile(std::io::Error),
+}
+
+/// A running server.
+pub struct RunningServer {
+    addr: SocketAddr,
+    shutdown: CancellationToken,
+    grace: Duration,
+    registry: Arc<Registry>,
+    serve: JoinHandle<Result<(), tonic::transport::Error>>,
+}
+
+impl RunningServer {
+    /// The bound address (with the real port when listening on port 0).
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The registry (for in-process inspection in tests).
+    pub fn registry(&self) -> &Arc<Registry> {
+        &self.registry
+    }
+
+    /// Stops accepting, lets open streams finish the batch they are processing (they then
+    /// end with UNAVAILABLE), waits up to the grace period, and persists counters.
+    pub async fn shutdown(self) {
+        self.shutdown.cancel();
+        match tokio::time::timeout(self.grace, self.serve).await {
+            Ok(Ok(Ok(()))) => {}
+            Ok(Ok(Err(e))) => tracing::error!(error = %e, "server error during shutdown"),
+            Ok(Err(e)) => tracing::error!(error = %e, "server task failed"),
+            Err(_) => {
+                tracing::warn!(grace = ?self.grace, "connections still open after the grace period; exiting anyway")
+            }
+        }
+        let registry = self.registry.clone();
+        let flush = move || registry.flush_counters();
+        if let Err(e) = tokio::task::spawn_blocking(flush).await {
+            tracing::error!(error = %e, "could not persist counters");
+        }
+    }
+}
+
+/// Opens the store, restores every task, binds and starts serving.
+pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
+    let store: Arc<dyn Store> = match &settings.data_dir {
+        Some(dir) => Arc::new(DiskStore::open(dir)?),
+        None => Arc::new(MemoryStore),
+    };
+    tracing::info!("{}", store.describe());
+    let (registry, restored) = Registry::open(store, settings.limits)?;
+    if restored.tasks > 0 {
+        tracing::info!(
+            tasks = restored.tasks,
+            trajectories = restored.trajectories,
+            "restored tasks and pools"
+        );
+    }
+    let registry = Arc::new(registry);
+
+    let listener = TcpListener::bind(settings.listen)
+        .await
+        .map_err(|source| StartError::Bind {
+            addr: settings.listen,
+            source,
+        })?;
+    let addr = listener.local_addr().map_err(|source| StartError::Bind {
+        addr: settings.listen,
+        source,
+    })?;
+
+    let shutdown = CancellationToken::new();
+    let limit = settings.limits.max_message_bytes;
+    let shaping = ShapingServer::new(ShapingService::new(registry.clone(), shutdown.clone()))
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(limit);
+    let (health_reporter, health) = tonic_health::server::health_reporter();
+    health_reporter
+        .set_serving::<ShapingServer<ShapingService>>()
+        .await;
+    let reflection = |b: tonic_reflection::server::Builder<'static>| {
+        b.register_encoded_file_descriptor_set(crate::proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection(tonic_reflection::server::Builder::configure())
+        .build_v1()
+        .map_err(|e| StartError::PortFile(std::io::Error::other(e.to_string())))?;
+    let reflection_v1alpha = reflection(tonic_reflection::server::Builder::configure())
+        .build_v1alpha()
+        .map_err(|e| StartError::PortFile(std::io::Error::other(e.to_string())))?;
+
+    let stop = shutdown.clone();
+    let reporter = health_reporter.clone();
+    let router = Server::builder()
+        .layer(tower::util::MapResponseLayer::new(
+            size_limit_to_resource_exhausted,
+        ))
+        .add_service(health)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(shaping);
+    let serve = tokio::spawn(async move {
+        let signal = async move {
+            stop.cancelled().await;
+            reporter
+                .set_not_serving::<ShapingServer<ShapingService>>()
+                .await;
+        };
+        router
+            .serve_with_incoming_shutdown(TcpListenerStream::new(listener), signal)
+            .await
+    });
+    tracing::info!("listening on {addr}");
+    if let Some(path) = &settings.port_file {
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, format!("{addr}\n"))
+            .and_then(|_| std::fs::rename(&tmp, path))
+            .map_err(StartError::PortFile)?;
+    }
+    Ok(RunningServer {
+        addr,
+        shutdown,
+        grace: Duration::from_secs(settings.shutdown_grace_secs),
+        registry,
+        serve,
+    })
+}
+
+/// tonic answers a unary request over the size limit with OUT_OF_RANGE before any
+/// handler runs; rewrite that to RESOURCE_EXHAUSTED, the code SPEC §8 gives for a
+/// configured limit.
+fn size_limit_to_resource_exhausted<B>(mut res: http::Response<B>) -> http::Response<B> {
+    let h = res.headers();
+    let code_is_11 = h.get("grpc-status").map(|v| v.as_bytes()) == Some(b"11");
+    let message = h
+        .get("grpc-message")
+        .and_then(|v| v.to_str().ok())
+        .map(|m| m.replace("%20", " "))
+        .unwrap_or_default();
+    if code_is_11 && is_size_limit(tonic::Code::OutOfRange, &message) {
+        let h = res.headers_mut();
+        h.insert("grpc-status", http::HeaderValue::from_static("8"));
+        h.insert(
+            "grpc-message",
+            http::HeaderValue::from_static(
+                "message too large for this server's max_message_bytes limit",
+            ),
+        );
+    }
+    res
+}

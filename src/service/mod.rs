@@ -1,0 +1,152 @@
+//! The `tamrm.v1.Shaping` gRPC service: protocol mapping and validation only. The numbers
+//! come from [`crate::core`], state and locking from [`crate::registry`], and every error
+//! becomes a status in [`status`].
+
+pub mod convert;
+pub mod status;
+mod stream;
+pub mod validate;
+
+use std::sync::Arc;
+
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_util::sync::CancellationToken;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::error::Error;
+use crate::proto::shaping_server::Shaping;
+use crate::proto::{self};
+use crate::registry::Registry;
+use convert::{config_input, pool_proto, task_proto, trajectory_input, validate_task_id};
+
+/// Runs `f`, which may do blocking disk I/O when the store is durable, without stalling
+/// the async executor: on a multi-threaded runtime the current worker hands its other
+/// tasks off first.
+pub(crate) fn blocking<R>(durable: bool, f: impl FnOnce() -> R) -> R {
+    let multi = tokio::runtime::Handle::try_current()
+        .map(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
+        .unwrap_or(false);
+    if durable && multi {
+        tokio::task::block_in_place(f)
+    } else {
+        f()
+    }
+}
+
+/// The Shaping service over a [`Registry`].
+#[derive(Clone)]
+pub struct ShapingService {
+    registry: Arc<Registry>,
+    shutdown: CancellationToken,
+}
+
+impl ShapingService {
+    /// A service over `registry`; open streams end with UNAVAILABLE once `shutdown` is
+    /// cancelled (after finishing the batch they are processing).
+    pub fn new(registry: Arc<Registry>, shutdown: CancellationToken) -> ShapingService {
+        ShapingService { registry, shutdown }
+    }
+
+    fn task(&self, id: &str) -> Result<Arc<crate::registry::TaskHandle>, Error> {
+        validate_task_id("task_id", id)?;
+        self.registry.get(id)
+    }
+
+    fn durable(&self) -> bool {
+        self.registry.is_durable()
+    }
+}
+
+#[tonic::async_trait]
+impl Shaping for ShapingService {
+    async fn create_task(
+        &self,
+        request: Request<proto::CreateTaskRequest>,
+    ) -> Result<Response<proto::Task>, Status> {
+        let req = request.into_inner();
+        validate_task_id("task_id", &req.task_id)?;
+        let input = config_input(req.config.as_ref());
+        let task = blocking(self.durable(), || {
+            self.registry.create(&req.task_id, &input)
+        })?;
+        tracing::info!(task = %req.task_id, config = ?task.config(), "task created (or already present)");
+        Ok(Response::new(task_proto(&task)))
+    }
+
+    async fn get_task(
+        &self,
+        request: Request<proto::GetTaskRequest>,
+    ) -> Result<Response<proto::Task>, Status> {
+        let task = self.task(&request.get_ref().task_id)?;
+        Ok(Response::new(task_proto(&task)))
+    }
+
+    async fn list_tasks(
+        &self,
+        _request: Request<proto::ListTasksRequest>,
+    ) -> Result<Response<proto::ListTasksResponse>, Status> {
+        let tasks = self.registry.list().iter().map(|t| task_proto(t)).collect();
+        Ok(Response::new(proto::ListTasksResponse { tasks }))
+    }
+
+    async fn delete_task(
+        &self,
+        request: Request<proto::DeleteTaskRequest>,
+    ) -> Result<Response<proto::DeleteTaskResponse>, Status> {
+        let id = &request.get_ref().task_id;
+        validate_task_id("task_id", id)?;
+        blocking(self.durable(), || self.registry.delete(id))?;
+        tracing::info!(task = %id, "task deleted");
+        Ok(Response::new(proto::DeleteTaskResponse {}))
+    }
+
+    async fn reset_pool(
+        &self,
+        request: Request<proto::ResetPoolRequest>,
+    ) -> Result<Response<proto::Task>, Status> {
+        let task = self.task(&request.get_ref().task_id)?;
+        let version = blocking(self.durable(), || task.reset_pool())?;
+        tracing::info!(task = %task.id(), pool_version = version, "pool reset");
+        Ok(Response::new(task_proto(&task)))
+    }
+
+    async fn get_pool(
+        &self,
+        request: Request<proto::GetPoolRequest>,
+    ) -> Result<Response<proto::Pool>, Status> {
+        let task = self.task(&request.get_ref().task_id)?;
+        let pool = task.pool_snapshot()?;
+        Ok(Response::new(pool_proto(task.id(), &pool)))
+    }
+
+    async fn add_trajectory(
+        &self,
+        request: Request<proto::AddTrajectoryRequest>,
+    ) -> Result<Response<proto::AddTrajectoryResponse>, Status> {
+        let req = request.into_inner();
+        let task = self.task(&req.task_id)?;
+        let (actions, score) = trajectory_input(task.config(), req.trajectory)?;
+        let (inserted, pool_version) = blocking(self.durable(), || task.offer(actions, score))?;
+        Ok(Response::new(proto::AddTrajectoryResponse {
+            inserted,
+            pool_version,
+        }))
+    }
+
+    type ShapeStream = ReceiverStream<Result<proto::ShapeResponse, Status>>;
+
+    async fn shape(
+        &self,
+        request: Request<Streaming<proto::ShapeRequest>>,
+    ) -> Result<Response<Self::ShapeStream>, Status> {
+        let inbound = request.into_inner();
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        tokio::spawn(stream::run(
+            self.registry.clone(),
+            self.shutdown.clone(),
+            inbound,
+            tx,
+        ));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}

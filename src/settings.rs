@@ -1,0 +1,263 @@
+//! Server settings, layered: built-in defaults < config file (TOML) < environment
+//! variables < command-line flags.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Parser, Subcommand};
+use serde::Deserialize;
+
+use crate::registry::Limits;
+
+/// Default listen address.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
+
+/// `tamrm`: the TAMRM reward-shaping server.
+#[derive(Debug, Parser)]
+#[command(name = "tamrm", version, about, long_about = None)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Serve the tamrm.v1.Shaping gRPC API (plus grpc.health.v1 and server reflection).
+    Serve(ServeArgs),
+}
+
+/// Flags of `tamrm serve`. Each can also be set by the environment variable shown, or by
+/// the config file; flags win over the environment, which wins over the file.
+#[derive(Debug, Clone, Default, Args)]
+pub struct ServeArgs {
+    /// TOML config file (keys as in `docs/configuration.md`).
+    #[arg(long, env = "TAMRM_CONFIG", value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Address to listen on; port 0 picks a free port [default: 127.0.0.1:50051].
+    #[arg(long, env = "TAMRM_LISTEN", value_name = "ADDR")]
+    pub listen: Option<SocketAddr>,
+    /// Directory for durable tasks and pools; without it, state is in memory only.
+    #[arg(long, env = "TAMRM_DATA_DIR", value_name = "DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// Write the bound address (`host:port`) to this file once listening.
+    #[arg(long, env = "TAMRM_PORT_FILE", value_name = "FILE")]
+    pub port_file: Option<PathBuf>,
+    /// Most tasks the server holds [default: 10000].
+    #[arg(long, env = "TAMRM_MAX_TASKS")]
+    pub max_tasks: Option<usize>,
+    /// Most environments per Shape stream [default: 4096].
+    #[arg(long, env = "TAMRM_MAX_ENVS_PER_STREAM")]
+    pub max_envs_per_stream: Option<u32>,
+    /// Most entries per StepBatch [default: 65536].
+    #[arg(long, env = "TAMRM_MAX_BATCH_ENTRIES")]
+    pub max_batch_entries: Option<usize>,
+    /// Largest gRPC message in bytes [default: 67108864].
+    #[arg(long, env = "TAMRM_MAX_MESSAGE_BYTES")]
+    pub max_message_bytes: Option<usize>,
+    /// Largest pool_capacity a task may ask for [default: 10000].
+    #[arg(long, env = "TAMRM_MAX_POOL_CAPACITY")]
+    pub max_pool_capacity: Option<u32>,
+    /// Seconds to wait for open streams at shutdown before exiting anyway [default: 30].
+    #[arg(long, env = "TAMRM_SHUTDOWN_GRACE_SECS")]
+    pub shutdown_grace_secs: Option<u64>,
+}
+
+/// The config file: every key optional.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileSettings {
+    /// Listen address.
+    pub listen: Option<SocketAddr>,
+    /// Data directory.
+    pub data_dir: Option<PathBuf>,
+    /// Port file.
+    pub port_file: Option<PathBuf>,
+    /// Shutdown grace period, seconds.
+    pub shutdown_grace_secs: Option<u64>,
+    /// Limits (any subset).
+    pub limits: Option<FileLimits>,
+}
+
+/// `[limits]` of the config file.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileLimits {
+    /// See [`Limits::max_tasks`].
+    pub max_tasks: Option<usize>,
+    /// See [`Limits::max_envs_per_stream`].
+    pub max_envs_per_stream: Option<u32>,
+    /// See [`Limits::max_batch_entries`].
+    pub max_batch_entries: Option<usize>,
+    /// See [`Limits::max_message_bytes`].
+    pub max_message_bytes: Option<usize>,
+    /// See [`Limits::max_pool_capacity`].
+    pub max_pool_capacity: Option<u32>,
+}
+
+/// Resolved server settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// Listen address.
+    pub listen: SocketAddr,
+    /// Data directory (durable) or `None` (in memory).
+    pub data_dir: Option<PathBuf>,
+    /// Where to write the bound address.
+    pub port_file: Option<PathBuf>,
+    /// Server limits.
+    pub limits: Limits,
+    /// Shutdown grace period, seconds.
+    pub shutdown_grace_secs: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Settings {
+        Settings {
+            listen: DEFAULT_LISTEN.parse().expect("valid default address"),
+            data_dir: None,
+            port_file: None,
+            limits: Limits::default(),
+            shutdown_grace_secs: 30,
+        }
+    }
+}
+
+/// A settings problem, naming its source.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct SettingsError(String);
+
+impl Settings {
+    /// Defaults, overlaid by the config file (if `args.config` names one), overlaid by the
+    /// flags/environment in `args` (clap already gives flags precedence over environment).
+    pub fn resolve(args: &ServeArgs) -> Result<Settings, SettingsError> {
+        let mut s = Settings::default();
+        if let Some(path) = &args.config {
+            s.apply_file(&read_file(path)?);
+        }
+        s.apply_args(args);
+        if s.limits.max_message_bytes < 1024 {
+            return Err(SettingsError(format!(
+                "max_message_bytes must be at least 1024, got {}",
+                s.limits.max_message_bytes
+            )));
+        }
+        Ok(s)
+    }
+
+    fn apply_file(&mut self, f: &FileSettings) {
+        set(&mut self.listen, f.listen);
+        if f.data_dir.is_some() {
+            self.data_dir.clone_from(&f.data_dir);
+        }
+        if f.port_file.is_some() {
+            self.port_file.clone_from(&f.port_file);
+        }
+        set(&mut self.shutdown_grace_secs, f.shutdown_grace_secs);
+        if let Some(l) = &f.limits {
+            let m = &mut self.limits;
+            set(&mut m.max_tasks, l.max_tasks);
+            set(&mut m.max_envs_per_stream, l.max_envs_per_stream);
+            set(&mut m.max_batch_entries, l.max_batch_entries);
+            set(&mut m.max_message_bytes, l.max_message_bytes);
+            set(&mut m.max_pool_capacity, l.max_pool_capacity);
+        }
+    }
+
+    fn apply_args(&mut self, a: &ServeArgs) {
+        set(&mut self.listen, a.listen);
+        if a.data_dir.is_some() {
+            self.data_dir.clone_from(&a.data_dir);
+        }
+        if a.port_file.is_some() {
+            self.port_file.clone_from(&a.port_file);
+        }
+        set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
+        let m = &mut self.limits;
+        set(&mut m.max_tasks, a.max_tasks);
+        set(&mut m.max_envs_per_stream, a.max_envs_per_stream);
+        set(&mut m.max_batch_entries, a.max_batch_entries);
+        set(&mut m.max_message_bytes, a.max_message_bytes);
+        set(&mut m.max_pool_capacity, a.max_pool_capacity);
+    }
+}
+
+fn set<T>(slot: &mut T, value: Option<T>) {
+    if let Some(v) = value {
+        *slot = v;
+    }
+}
+
+fn read_file(path: &Path) -> Result<FileSettings, SettingsError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| SettingsError(format!("config file {}: {e}", path.display())))?;
+    toml::from_str(&text).map_err(|e| SettingsError(format!("config file {}: {e}", path.display())))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> ServeArgs {
+        let mut full = vec!["tamrm", "serve"];
+        full.extend_from_slice(args);
+        match Cli::try_parse_from(full).unwrap().command {
+            Command::Serve(a) => a,
+        }
+    }
+
+    /// All layering checks live in one test because they set process environment
+    /// variables, which no other test reads.
+    #[test]
+    fn defaults_then_file_then_env_then_flags() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("tamrm.toml");
+        std::fs::write(
+            &file,
+            "listen = \"127.0.0.1:7000\"\ndata_dir = \"/from/file\"\n[limits]\nmax_tasks = 5\nmax_batch_entries = 9\n",
+        )
+        .unwrap();
+        let file_arg = file.to_str().unwrap();
+
+        let s = Settings::resolve(&parse(&[])).unwrap();
+        assert_eq!(s, Settings::default());
+
+        let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
+        assert_eq!(s.listen.port(), 7000);
+        assert_eq!(s.data_dir.as_deref(), Some(Path::new("/from/file")));
+        assert_eq!((s.limits.max_tasks, s.limits.max_batch_entries), (5, 9));
+        assert_eq!(
+            s.limits.max_envs_per_stream,
+            Limits::default().max_envs_per_stream
+        );
+
+        std::env::set_var("TAMRM_LISTEN", "127.0.0.1:7001");
+        std::env::set_var("TAMRM_MAX_TASKS", "6");
+        let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
+        assert_eq!(s.listen.port(), 7001, "env beats file");
+        assert_eq!(s.limits.max_tasks, 6);
+        assert_eq!(
+            s.limits.max_batch_entries, 9,
+            "file still applies where env is silent"
+        );
+
+        let s = Settings::resolve(&parse(&[
+            "--config",
+            file_arg,
+            "--listen",
+            "127.0.0.1:0",
+            "--max-tasks",
+            "7",
+        ]))
+        .unwrap();
+        assert_eq!(s.listen.port(), 0, "flags beat env");
+        assert_eq!(s.limits.max_tasks, 7);
+        std::env::remove_var("TAMRM_LISTEN");
+        std::env::remove_var("TAMRM_MAX_TASKS");
+
+        std::fs::write(&file, "listn = \"x\"\n").unwrap();
+        let e = Settings::resolve(&parse(&["--config", file_arg])).unwrap_err();
+        assert!(e.to_string().contains("listn"), "{e}");
+    }
+}

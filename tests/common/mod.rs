@@ -1,0 +1,230 @@
+//! Shared helpers for integration tests: a real server on a real socket.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use tamrm::proto::shaping_client::ShapingClient;
+use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
+use tamrm::server::RunningServer;
+use tamrm::settings::Settings;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+use tonic::Streaming;
+
+pub type Client = ShapingClient<Channel>;
+
+/// Starts an in-process server on 127.0.0.1:0 with the given settings tweaks.
+pub async fn start_server(
+    data_dir: Option<&Path>,
+    tweak: impl FnOnce(&mut Settings),
+) -> RunningServer {
+    let mut settings = Settings {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: data_dir.map(Path::to_path_buf),
+        shutdown_grace_secs: 10,
+        ..Settings::default()
+    };
+    tweak(&mut settings);
+    tamrm::server::start(&settings)
+        .await
+        .expect("server starts")
+}
+
+pub async fn connect(addr: std::net::SocketAddr) -> Client {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        match ShapingClient::connect(format!("http://{addr}")).await {
+            Ok(c) => {
+                return c
+                    .max_decoding_message_size(256 << 20)
+                    .max_encoding_message_size(256 << 20)
+            }
+            Err(e) if Instant::now() > deadline => panic!("cannot connect to {addr}: {e}"),
+            Err(_) => tokio::time::sleep(Duration::from_millis(20)).await,
+        }
+    }
+}
+
+/// A discrete task config with everything explicit.
+pub fn discrete(
+    n: u32,
+    capacity: u32,
+    k: u32,
+    start_step: u32,
+    min_pool_size: u32,
+) -> proto::TaskConfig {
+    proto::TaskConfig {
+        num_actions: n,
+        pool_capacity: Some(capacity),
+        k: Some(k),
+        start_step: Some(start_step),
+        min_pool_size: Some(min_pool_size),
+        ..Default::default()
+    }
+}
+
+pub async fn create(client: &mut Client, id: &str, config: proto::TaskConfig) -> proto::Task {
+    client
+        .create_task(proto::CreateTaskRequest {
+            task_id: id.into(),
+            config: Some(config),
+        })
+        .await
+        .expect("create_task")
+        .into_inner()
+}
+
+/// One open Shape stream driven step by step.
+pub struct Stream {
+    tx: mpsc::Sender<ShapeRequest>,
+    rx: Streaming<ShapeResponse>,
+}
+
+impl Stream {
+    /// Opens a stream (sends Open) and returns it with the `opened` task, or the error status.
+    pub async fn open(
+        client: &mut Client,
+        task_id: &str,
+        num_envs: u32,
+    ) -> Result<(Stream, proto::Task), tonic::Status> {
+        let (tx, rx) = mpsc::channel(16);
+        tx.send(ShapeRequest {
+            kind: Some(shape_request::Kind::Open(proto::Open {
+                task_id: task_id.into(),
+                num_envs,
+            })),
+        })
+        .await
+        .unwrap();
+        let mut rx = client.shape(ReceiverStream::new(rx)).await?.into_inner();
+        match rx.message().await? {
+            Some(ShapeResponse {
+                kind: Some(shape_response::Kind::Opened(task)),
+            }) => Ok((Stream { tx, rx }, task)),
+            other => panic!("expected opened, got {other:?}"),
+        }
+    }
+
+    /// Opens a raw stream without sending anything.
+    pub async fn raw(client: &mut Client) -> Result<Stream, tonic::Status> {
+        let (tx, rx) = mpsc::channel(16);
+        let rx = client.shape(ReceiverStream::new(rx)).await?.into_inner();
+        Ok(Stream { tx, rx })
+    }
+
+    pub async fn send(&self, req: ShapeRequest) {
+        // The server may already have closed the stream; the error shows up on recv.
+        let _ = self.tx.send(req).await;
+    }
+
+    pub async fn recv(&mut self) -> Result<Option<ShapeResponse>, tonic::Status> {
+        self.rx.message().await
+    }
+
+    /// Sends one batch and returns its shaped answer or the error status.
+    pub async fn step(
+        &mut self,
+        batch: proto::StepBatch,
+    ) -> Result<proto::ShapedBatch, tonic::Status> {
+        self.send(ShapeRequest {
+            kind: Some(shape_request::Kind::Steps(batch)),
+        })
+        .await;
+        match self.rx.message().await? {
+            Some(ShapeResponse {
+                kind: Some(shape_response::Kind::Shaped(b)),
+            }) => Ok(b),
+            other => panic!("expected shaped, got {other:?}"),
+        }
+    }
+
+    /// Half-closes the request side.
+    pub fn close(self) -> Streaming<ShapeResponse> {
+        drop(self.tx);
+        self.rx
+    }
+}
+
+/// A batch of discrete steps: one entry per env in order.
+pub fn batch(actions: &[u32], rewards: &[f64], terminated: &[bool]) -> proto::StepBatch {
+    proto::StepBatch {
+        actions: actions.to_vec(),
+        rewards: rewards.to_vec(),
+        terminated: terminated.to_vec(),
+        ..Default::default()
+    }
+}
+
+/// The real `tamrm` binary as a child process.
+pub struct Binary {
+    pub child: Child,
+    pub addr: std::net::SocketAddr,
+}
+
+impl Binary {
+    pub fn start(args: &[&str]) -> Binary {
+        let dir = tempfile::tempdir().unwrap();
+        let port_file = dir.path().join("port");
+        let child = Command::new(env!("CARGO_BIN_EXE_tamrm"))
+            .arg("serve")
+            .arg("--listen")
+            .arg("127.0.0.1:0")
+            .arg("--port-file")
+            .arg(&port_file)
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn tamrm");
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let addr = loop {
+            if let Ok(s) = std::fs::read_to_string(&port_file) {
+                if let Ok(a) = s.trim().parse() {
+                    break a;
+                }
+            }
+            assert!(
+                Instant::now() < deadline,
+                "tamrm did not write its port file"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        std::mem::forget(dir);
+        Binary { child, addr }
+    }
+
+    /// Sends SIGTERM and waits for the exit status, with a timeout.
+    pub fn terminate(mut self) -> (std::process::ExitStatus, String) {
+        let pid = self.child.id().to_string();
+        Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                let mut err = String::new();
+                use std::io::Read;
+                self.child
+                    .stderr
+                    .take()
+                    .unwrap()
+                    .read_to_string(&mut err)
+                    .unwrap();
+                return (status, err);
+            }
+            assert!(
+                Instant::now() < deadline,
+                "tamrm did not exit after SIGTERM"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Binary {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
