@@ -1,11 +1,14 @@
 //! Tasks, their pools, and the step path.
 //!
 //! Locking: the task map is a `DashMap` (sharded; lookups never wait on other tasks).
-//! Each task has its own `RwLock<Pool>`: streams shaping a batch hold the read lock,
-//! so many streams on one task shape in parallel; a pool change takes the write lock
-//! for the (short) time it needs to persist and swap the pool. Streams on different
-//! tasks share no lock at all. Create/delete are serialised by one admin mutex, which the
-//! step path never touches.
+//! Each task publishes its pool as an `Arc<Pool>` behind a `RwLock` that is only ever held
+//! for a pointer copy or swap: a stream takes a snapshot at the start of a batch and
+//! shapes without any lock. Pool changes of one task are serialised by the task's
+//! `persist` mutex: the writer builds the next pool privately, persists it (fsync), then
+//! swaps it in. Readers keep shaping against the previous pool during the fsync, and see
+//! the change from their next step after the swap. Streams on different tasks share no
+//! lock at all. Create/delete are serialised by one admin mutex, which the step path never
+//! touches.
 
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -72,7 +75,10 @@ pub struct TaskStats {
 pub struct TaskHandle {
     id: String,
     config: TaskConfig,
-    pool: RwLock<Pool>,
+    /// The published pool; the lock is held only to copy or swap the `Arc`.
+    pool: RwLock<Arc<Pool>>,
+    /// Serialises pool changes (and deletion) of this task.
+    persist: Mutex<()>,
     deleted: AtomicBool,
     episodes_completed: AtomicU64,
     steps_shaped: AtomicU64,
@@ -100,7 +106,8 @@ impl TaskHandle {
         TaskHandle {
             id,
             config,
-            pool: RwLock::new(pool),
+            pool: RwLock::new(Arc::new(pool)),
+            persist: Mutex::new(()),
             deleted: AtomicBool::new(false),
             episodes_completed: AtomicU64::new(counters.episodes_completed),
             steps_shaped: AtomicU64::new(counters.steps_shaped),
@@ -134,9 +141,13 @@ impl TaskHandle {
         }
     }
 
+    fn current(&self) -> Arc<Pool> {
+        self.pool.read().clone()
+    }
+
     /// Live statistics.
     pub fn stats(&self) -> TaskStats {
-        let pool = self.pool.read();
+        let pool = self.current();
         let (worst, best) = pool.score_range().unwrap_or((0.0, 0.0));
         TaskStats {
             pool_size: pool.len(),
@@ -151,9 +162,9 @@ impl TaskHandle {
     }
 
     /// A consistent copy of the pool (cheap: trajectories are shared).
-    pub fn pool_snapshot(&self) -> Result<Pool, Error> {
+    pub fn pool_snapshot(&self) -> Result<Arc<Pool>, Error> {
         self.check_live()?;
-        Ok(self.pool.read().clone())
+        Ok(self.current())
     }
 
     /// Registers an open stream; the count drops when the guard does.
@@ -163,22 +174,29 @@ impl TaskHandle {
         Ok(StreamGuard(self.clone()))
     }
 
-    /// Plans a change under the write lock, persists it, then makes it visible.
+    /// Persists `next` (built from `base` while holding `persist`) and publishes it.
+    fn publish(&self, base: &Pool, next: Arc<Pool>) -> Result<(), Error> {
+        self.store.commit(&self.id, base, &next, self.counters())?;
+        *self.pool.write() = next;
+        Ok(())
+    }
+
+    /// Applies one planned change: plan against the latest pool, persist, publish.
     fn change(
         &self,
         plan: impl FnOnce(&Pool) -> Option<crate::core::PoolChange>,
     ) -> Result<(bool, u64), Error> {
-        let mut pool = self.pool.write();
+        let _persist = self.persist.lock();
         self.check_live()?;
-        let Some(change) = plan(&pool) else {
-            return Ok((false, pool.version()));
+        let base = self.current();
+        let Some(change) = plan(&base) else {
+            return Ok((false, base.version()));
         };
-        let mut next = pool.clone();
+        let mut next = Pool::clone(&base);
         next.apply(&change);
-        self.store
-            .commit(&self.id, &change, &next, self.counters())?;
-        *pool = next;
-        Ok((true, pool.version()))
+        let version = next.version();
+        self.publish(&base, Arc::new(next))?;
+        Ok((true, version))
     }
 
     /// Offers a trajectory (SPEC §6). Returns whether it was stored, and the version after.
@@ -192,9 +210,14 @@ impl TaskHandle {
     }
 
     /// Shapes a validated batch: `entries[i] = (env, step)`, processed in order against
-    /// the pool as it is at each entry. Episode ends are offered to the pool right after
-    /// their step is shaped. Appends one output per entry and returns the pool version
-    /// after the batch.
+    /// the pool as it is at each entry. Appends one output per entry and returns the pool
+    /// version after the batch.
+    ///
+    /// The first episode end of the batch takes the task's `persist` lock; from then on
+    /// the batch works on a private copy of the latest pool, offering each finished
+    /// episode to it right after its step is shaped (so later entries of the batch see
+    /// it), and at the end of the batch persists all of its changes in one commit and
+    /// publishes them. Other streams shape against the previous pool until then.
     pub fn shape_batch(
         &self,
         episodes: &mut [Episode],
@@ -203,30 +226,38 @@ impl TaskHandle {
         out: &mut Vec<StepOutput>,
     ) -> Result<u64, Error> {
         self.check_live()?;
-        let mut pool = self.pool.read();
-        let mut result = Ok(());
+        let mut pool = self.current();
+        let mut writer: Option<(parking_lot::MutexGuard<'_, ()>, Arc<Pool>)> = None;
         for (env, input) in entries {
             let (output, end) = episodes[*env].step(&self.config, &pool, input, scratch);
             out.push(output);
             if let Some(end) = end {
                 self.episodes_completed.fetch_add(1, Ordering::Relaxed);
-                drop(pool);
-                result = self.offer(end.actions, end.score).map(|_| ());
-                pool = self.pool.read();
-                if result.is_err() {
-                    break;
+                if writer.is_none() {
+                    let guard = self.persist.lock();
+                    self.check_live()?;
+                    pool = self.current();
+                    writer = Some((guard, pool.clone()));
+                }
+                if let Some(change) = pool.plan_offer(end.actions, end.score) {
+                    Arc::make_mut(&mut pool).apply(&change);
                 }
             }
         }
         self.steps_shaped
-            .fetch_add(out.len() as u64, Ordering::Relaxed);
-        let version = pool.version();
-        result.map(|_| version)
+            .fetch_add(entries.len() as u64, Ordering::Relaxed);
+        if let Some((_guard, base)) = writer {
+            if pool.version() != base.version() {
+                self.publish(&base, pool.clone())?;
+            }
+        }
+        Ok(pool.version())
     }
 
     /// Persists the counters (at shutdown).
     pub fn flush_counters(&self) -> Result<(), StoreError> {
-        let pool = self.pool.read();
+        let _persist = self.persist.lock();
+        let pool = self.current();
         if self.deleted.load(Ordering::Acquire) {
             return Ok(());
         }
@@ -341,7 +372,7 @@ impl Registry {
     pub fn delete(&self, id: &str) -> Result<(), Error> {
         let _admin = self.admin.lock();
         let handle = self.get(id)?;
-        let _pool = handle.pool.write();
+        let _persist = handle.persist.lock();
         self.store.delete_task(id)?;
         handle.deleted.store(true, Ordering::Release);
         self.tasks.remove(id);

@@ -23,7 +23,7 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
 use super::{Counters, Store, StoreError, StoredTask};
-use crate::core::{ActionSeq, Pool, PoolChange, TaskConfig, Trajectory};
+use crate::core::{ActionSeq, Pool, TaskConfig, Trajectory};
 
 /// Version of the on-disk format written by this build.
 pub const FORMAT_VERSION: u32 = 1;
@@ -440,40 +440,37 @@ impl Store for DiskStore {
     fn commit(
         &self,
         id: &str,
-        change: &PoolChange,
+        before: &Pool,
         after: &Pool,
         counters: Counters,
     ) -> Result<(), StoreError> {
         let dir = self.task_dir(id)?;
-        let mut remove: Vec<u64> = Vec::new();
-        match change {
-            PoolChange::Insert {
-                trajectory,
-                replaces,
-            } => {
-                let path = traj_path(&dir, trajectory.seq);
-                write_atomic(&path, &encode_trajectory(trajectory))?;
-                remove.extend(replaces);
+        let old: std::collections::HashSet<u64> = before.seqs().iter().copied().collect();
+        let new: std::collections::HashSet<u64> = after.seqs().iter().copied().collect();
+        let added: Vec<&Trajectory> = after
+            .trajectories()
+            .iter()
+            .filter(|t| !old.contains(&t.seq))
+            .map(|t| t.as_ref())
+            .collect();
+        if !added.is_empty() {
+            // Not yet referenced by pool.json, so written in place: a crash here leaves
+            // only an unlisted file, removed at the next start.
+            for t in &added {
+                let path = traj_path(&dir, t.seq);
+                let write = || -> std::io::Result<()> {
+                    let mut f = File::create(&path)?;
+                    f.write_all(&encode_trajectory(t))?;
+                    f.sync_all()
+                };
+                write().map_err(|e| err(&path, format!("write: {e}")))?;
             }
-            PoolChange::Reset => {
-                let listed: std::collections::HashSet<u64> = after.seqs().iter().copied().collect();
-                let traj_dir = dir.join("traj");
-                for entry in fs::read_dir(&traj_dir).map_err(|e| err(&traj_dir, e))? {
-                    let path = entry.map_err(|e| err(&traj_dir, e))?.path();
-                    let seq = path
-                        .file_stem()
-                        .and_then(|s| s.to_str())
-                        .and_then(|s| s.parse::<u64>().ok());
-                    if let Some(seq) = seq.filter(|s| !listed.contains(s)) {
-                        remove.push(seq);
-                    }
-                }
-            }
+            fsync_dir(&dir.join("traj"))?;
         }
         // The commit point.
         Self::write_pool_file(&dir, after, counters)?;
-        for seq in remove {
-            let path = traj_path(&dir, seq);
+        for seq in old.difference(&new) {
+            let path = traj_path(&dir, *seq);
             if let Err(e) = fs::remove_file(&path) {
                 tracing::warn!(file = %path.display(), error = %e, "could not remove a superseded trajectory file; it is removed at the next start");
             }

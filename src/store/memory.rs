@@ -1,5 +1,5 @@
 use super::{Counters, Store, StoreError, StoredTask};
-use crate::core::{Pool, PoolChange, TaskConfig};
+use crate::core::{Pool, TaskConfig};
 
 /// Keeps nothing: every change is accepted and forgotten, so state lives only in the
 /// server's memory and is lost at exit.
@@ -23,7 +23,7 @@ impl Store for MemoryStore {
     fn delete_task(&self, _: &str) -> Result<(), StoreError> {
         Ok(())
     }
-    fn commit(&self, _: &str, _: &PoolChange, _: &Pool, _: Counters) -> Result<(), StoreError> {
+    fn commit(&self, _: &str, _: &Pool, _: &Pool, _: Counters) -> Result<(), StoreError> {
         Ok(())
     }
     fn save_counters(&self, _: &str, _: &Pool, _: Counters) -> Result<(), StoreError> {

@@ -2,7 +2,8 @@
 //!
 //! The registry calls the store *before* it makes a change visible: a change that the
 //! store could not persist is never applied, so every change a response reports is on
-//! disk (for a durable store) when the response is sent.
+//! disk (for a durable store) when the response is sent. Calls for one task are
+//! serialised by the registry; streams keep shaping against the previous pool meanwhile.
 //!
 //! - [`MemoryStore`]: nothing is persisted; state is lost at exit.
 //! - [`DiskStore`]: one directory per task under a data dir; see `docs/storage.md`.
@@ -14,7 +15,7 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
-use crate::core::{Pool, PoolChange, TaskConfig};
+use crate::core::{Pool, TaskConfig};
 
 pub use disk::{DiskStore, FORMAT_VERSION};
 pub use memory::MemoryStore;
@@ -75,11 +76,13 @@ pub trait Store: Send + Sync + 'static {
     fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError>;
     /// Removes a task and its pool.
     fn delete_task(&self, id: &str) -> Result<(), StoreError>;
-    /// Persists `change`, after which the pool is `after`.
+    /// Persists the pool going from `before` (the last committed state) to `after`: one or
+    /// more inserts/replacements, or a reset. Trajectories are immutable and identified by
+    /// seq, so the difference of the two seq sets says what to write and what to remove.
     fn commit(
         &self,
         id: &str,
-        change: &PoolChange,
+        before: &Pool,
         after: &Pool,
         counters: Counters,
     ) -> Result<(), StoreError>;
