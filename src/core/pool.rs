@@ -133,7 +133,7 @@ impl Pool {
                 .trajectories
                 .iter()
                 .reduce(|a, b| if b.score < a.score { b } else { a })?;
-            if score >= worst.score {
+            if score > worst.score {
                 Some(worst.seq)
             } else {
                 return None;
