@@ -79,6 +79,8 @@ pub struct TaskHandle {
     pool: RwLock<Arc<Pool>>,
     /// Serialises pool changes (and deletion) of this task.
     persist: Mutex<()>,
+    /// Version of the published pool, so the step path can notice a change with one load.
+    published: AtomicU64,
     deleted: AtomicBool,
     episodes_completed: AtomicU64,
     steps_shaped: AtomicU64,
@@ -106,6 +108,7 @@ impl TaskHandle {
         TaskHandle {
             id,
             config,
+            published: AtomicU64::new(pool.version()),
             pool: RwLock::new(Arc::new(pool)),
             persist: Mutex::new(()),
             deleted: AtomicBool::new(false),
@@ -177,7 +180,9 @@ impl TaskHandle {
     /// Persists `next` (built from `base` while holding `persist`) and publishes it.
     fn publish(&self, base: &Pool, next: Arc<Pool>) -> Result<(), Error> {
         self.store.commit(&self.id, base, &next, self.counters())?;
+        let version = next.version();
         *self.pool.write() = next;
+        self.published.store(version, Ordering::Release);
         Ok(())
     }
 
@@ -210,7 +215,8 @@ impl TaskHandle {
     }
 
     /// Shapes a validated batch: `entries[i] = (env, step)`, processed in order against
-    /// the pool as it is at each entry. Appends one output per entry and returns the pool
+    /// the pool as it is at each entry (a change another stream publishes mid-batch is
+    /// seen from the next entry on). Appends one output per entry and returns the pool
     /// version after the batch.
     ///
     /// The first episode end of the batch takes the task's `persist` lock; from then on
@@ -229,6 +235,10 @@ impl TaskHandle {
         let mut pool = self.current();
         let mut writer: Option<(parking_lot::MutexGuard<'_, ()>, Arc<Pool>)> = None;
         for (env, input) in entries {
+            if writer.is_none() && self.published.load(Ordering::Acquire) != pool.version() {
+                // Another stream committed a change: this step sees it.
+                pool = self.current();
+            }
             let (output, end) = episodes[*env].step(&self.config, &pool, input, scratch);
             out.push(output);
             if let Some(end) = end {
