@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Smoke test of the whole reproduction pipeline, server included: lint, unit tests, the
+# --quick grid (1 seed, tiny budgets, every experiment x arm through a local tamrm server)
+# and the report, written into a temporary directory (docs/reproduction.md is untouched).
+#
+# Env: TAMRM_VENV (default ./.venv, with clients/python[sb3] installed), TAMRM_BIN (default
+# target/release/tamrm). Called from .ci/run; takes 1-3 minutes.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$PWD
+venv=${TAMRM_VENV:-$root/.venv}
+py=$venv/bin/python
+export TAMRM_BIN=${TAMRM_BIN:-$root/target/release/tamrm}
+export PYTHONPATH=$root/experiments${PYTHONPATH:+:$PYTHONPATH}
+
+"$py" -m pip install --quiet --disable-pip-version-check -r experiments/requirements.txt
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+
+cd experiments
+echo "--- experiments: ruff"
+"$py" -m ruff check .
+"$py" -m ruff format --check .
+echo "--- experiments: quick grid (server: $TAMRM_BIN)"
+"$py" -m tamrm_experiments run --quick --jobs 2 --out "$tmp/runs" --no-progress
+echo "--- experiments: report"
+"$py" -m tamrm_experiments report --runs "$tmp/runs" --out "$tmp/report/reproduction.md"
+n_csv=$(find "$tmp/runs" -name 'seed*.csv' | wc -l)
+n_png=$(find "$tmp/report/reproduction" -name '*.png' | wc -l)
+grep -q "## Cart pole" "$tmp/report/reproduction.md"
+if [ "$n_csv" -ne 16 ] || [ "$n_png" -ne 4 ]; then
+    echo "expected 16 run CSVs and 4 plots, got $n_csv and $n_png" >&2
+    exit 1
+fi
+echo "--- experiments: unit tests"
+"$py" -m pytest -q -p no:cacheprovider tests

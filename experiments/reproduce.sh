@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The one command of the reproduction (docs/reproduction.md): start a local tamrm server,
+# run every experiment x arm x seed on all cores (resumable: finished runs are skipped),
+# then regenerate docs/reproduction.md and its plots from the raw CSVs.
+#
+#   experiments/reproduce.sh                # full profile, 5 seeds
+#   experiments/reproduce.sh --seeds 10     # more seeds (reuses the first 5)
+#   experiments/reproduce.sh --quick        # smoke test; report into experiments/runs-quick/
+#
+# Env: TAMRM_VENV (default ./.venv-exp), TAMRM_BIN (default target/release/tamrm).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$PWD
+py=${TAMRM_VENV:-$root/.venv-exp}/bin/python
+export TAMRM_BIN=${TAMRM_BIN:-$root/target/release/tamrm}
+export PYTHONPATH=$root/experiments${PYTHONPATH:+:$PYTHONPATH}
+runs=experiments/runs
+report=docs/reproduction.md
+for arg in "$@"; do
+    if [ "$arg" = "--quick" ]; then
+        runs=experiments/runs-quick
+        report=experiments/runs-quick/reproduction.md
+    fi
+done
+"$py" -m tamrm_experiments run --out "$runs" "$@"
+"$py" -m tamrm_experiments report --runs "$runs" --out "$report"

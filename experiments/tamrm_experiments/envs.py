@@ -1,0 +1,195 @@
+"""The environments of the paper's three experiments (paper §V), as gymnasium envs.
+
+- :class:`MazeEnv`: the 8x8 maze of Fig. 7 (and the modified maze of Fig. 9 through
+  ``switch_start_after``).
+- :class:`PaperCartPoleReward`: ``CartPole-v0`` (200-step episodes) with the paper's
+  training reward: +1 per step, -1 on the step where the pole falls / the cart leaves.
+- :func:`make_mountain_car`: ``MountainCar-v0`` dynamics without Gym's 200-step limit,
+  capped at ``max_steps`` steps per episode (a truncation, not a termination).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.wrappers import TimeLimit
+
+__all__ = [
+    "MAZE_GOAL",
+    "MAZE_NEW_START",
+    "MAZE_SIZE",
+    "MAZE_START",
+    "MAZE_WALLS",
+    "MazeEnv",
+    "PaperCartPoleReward",
+    "make_cartpole",
+    "make_mountain_car",
+    "maze_shortest_path",
+]
+
+MAZE_SIZE = 8
+#: Wall cells as (x, y): x is the column, y the row counted from the top.
+MAZE_WALLS: frozenset[tuple[int, int]] = frozenset(
+    {
+        (5, 0),
+        (1, 1),
+        (7, 1),
+        (0, 2),
+        (1, 2),
+        (4, 2),
+        (6, 2),
+        (7, 2),
+        (0, 4),
+        (2, 4),
+        (6, 4),
+        (0, 5),
+        (3, 5),
+        (6, 5),
+        (7, 5),
+        (6, 6),
+        (3, 7),
+        (4, 7),
+    }
+)
+MAZE_START = (0, 7)
+MAZE_GOAL = (7, 0)
+#: Start of the modified maze from episode ``switch_start_after + 1`` on (our choice: the
+#: paper's Fig. 9 is not legible in the text we have). The bottom-right corner: on the
+#: other side of the wall (3,7)-(4,7), reached by a different route.
+MAZE_NEW_START = (7, 7)
+#: Actions: 0 up (y - 1), 1 down (y + 1), 2 left (x - 1), 3 right (x + 1).
+MAZE_MOVES: tuple[tuple[int, int], ...] = ((0, -1), (0, 1), (-1, 0), (1, 0))
+
+
+def _open(cell: tuple[int, int]) -> bool:
+    x, y = cell
+    return 0 <= x < MAZE_SIZE and 0 <= y < MAZE_SIZE and cell not in MAZE_WALLS
+
+
+def maze_shortest_path(start: tuple[int, int], goal: tuple[int, int] = MAZE_GOAL) -> int:
+    """Return the number of moves of a shortest path from ``start`` to ``goal`` (BFS)."""
+    seen = {start}
+    frontier: deque[tuple[tuple[int, int], int]] = deque([(start, 0)])
+    while frontier:
+        cell, dist = frontier.popleft()
+        if cell == goal:
+            return dist
+        for dx, dy in MAZE_MOVES:
+            nxt = (cell[0] + dx, cell[1] + dy)
+            if _open(nxt) and nxt not in seen:
+                seen.add(nxt)
+                frontier.append((nxt, dist + 1))
+    raise ValueError(f"{goal} is not reachable from {start}")
+
+
+class MazeEnv(gym.Env[np.ndarray, int]):
+    """The paper's 8x8 maze: sparse reward +1 at the goal, 0 otherwise.
+
+    A move into a wall or off the grid leaves the agent in place. An episode terminates
+    at the goal and is truncated after ``max_steps`` steps. The observation is the
+    agent's ``(x, y)`` as float32. The final step's ``info`` carries ``episode_score``:
+    ``100 / steps`` on success (shorter paths rank higher in the memory pool), ``0.0``
+    on a truncated failure, and ``is_success``.
+
+    Args:
+        max_steps: Steps after which an unfinished episode is truncated (paper: 10 000).
+        start: The start cell.
+        switch_start_after: If set, episodes after this many (counted by this env's
+            resets) start at ``new_start`` instead: the paper's modified maze.
+        new_start: The start cell after the switch.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+
+    def __init__(
+        self,
+        max_steps: int = 10_000,
+        start: tuple[int, int] = MAZE_START,
+        switch_start_after: int | None = None,
+        new_start: tuple[int, int] = MAZE_NEW_START,
+    ) -> None:
+        super().__init__()
+        for cell in (start, new_start):
+            if not _open(cell):
+                raise ValueError(f"start cell {cell} is a wall or off the grid")
+        self.observation_space = gym.spaces.Box(0.0, MAZE_SIZE - 1.0, (2,), np.float32)
+        self.action_space = gym.spaces.Discrete(4)
+        self.max_steps = max_steps
+        self.start = start
+        self.switch_start_after = switch_start_after
+        self.new_start = new_start
+        self.episodes_started = 0
+        self.pos = start
+        self.steps = 0
+
+    @property
+    def current_start(self) -> tuple[int, int]:
+        """The start cell of the current episode."""
+        if self.switch_start_after is not None and self.episodes_started > self.switch_start_after:
+            return self.new_start
+        return self.start
+
+    def _obs(self) -> np.ndarray:
+        return np.array(self.pos, dtype=np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new episode at the (current) start cell."""
+        super().reset(seed=seed)
+        self.episodes_started += 1
+        self.pos = self.current_start
+        self.steps = 0
+        return self._obs(), {"start": self.pos}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Move one cell (or stay, blocked by a wall or the edge)."""
+        dx, dy = MAZE_MOVES[int(action)]
+        nxt = (self.pos[0] + dx, self.pos[1] + dy)
+        if _open(nxt):
+            self.pos = nxt
+        self.steps += 1
+        terminated = self.pos == MAZE_GOAL
+        truncated = not terminated and self.steps >= self.max_steps
+        info: dict[str, Any] = {}
+        if terminated:
+            info["episode_score"] = 100.0 / self.steps
+            info["is_success"] = True
+        elif truncated:
+            info["episode_score"] = 0.0
+            info["is_success"] = False
+        return self._obs(), 1.0 if terminated else 0.0, terminated, truncated, info
+
+
+class PaperCartPoleReward(gym.Wrapper[Any, Any, Any, Any]):
+    """The paper's CartPole training reward: +1 per step, -1 on the failing step.
+
+    A step that *terminates* the episode (pole past 12 degrees or cart off the track)
+    gets -1; every other step, including the one truncated at the 200-step limit, +1.
+    The metric (steps kept up) is the episode length, which is unchanged.
+    """
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """Step the env and replace its reward."""
+        obs, _reward, terminated, truncated, info = self.env.step(action)
+        return obs, (-1.0 if terminated else 1.0), terminated, truncated, info
+
+
+def make_cartpole() -> gym.Env[Any, Any]:
+    """``CartPole-v0`` (200-step limit) with the paper's training reward."""
+    return PaperCartPoleReward(gym.make("CartPole-v0"))
+
+
+def make_mountain_car(max_steps: int = 10_000) -> gym.Env[Any, Any]:
+    """``MountainCar-v0`` dynamics without the 200-step limit, capped at ``max_steps``."""
+    from gymnasium.envs.classic_control.mountain_car import MountainCarEnv
+
+    return TimeLimit(MountainCarEnv(), max_episode_steps=max_steps)
+
+
+def make_maze(max_steps: int = 10_000, switch_start_after: int | None = None) -> MazeEnv:
+    """The maze (modified maze when ``switch_start_after`` is set)."""
+    return MazeEnv(max_steps=max_steps, switch_start_after=switch_start_after)

@@ -1,0 +1,536 @@
+"""Turn the raw per-episode CSVs into ``docs/reproduction.md`` and its plots.
+
+Everything in the page is computed from the runs directory: the tables, the verdicts
+and the closing note. Nothing is typed in by hand except the paper's own figures and
+the list of deviations from the paper (which describe the setup, not the results).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from tamrm_experiments.configs import ARMS, EXPERIMENTS
+from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
+from tamrm_experiments.stats import (
+    Interval,
+    first_solved_episode,
+    rolling_mean,
+    t_interval,
+    welch_interval,
+)
+
+__all__ = ["Run", "load_runs", "run_metrics", "write_report"]
+
+
+@dataclass
+class Run:
+    """One finished run: its sidecar and its per-episode rows."""
+
+    experiment: str
+    arm: str
+    seed: int
+    meta: dict[str, Any]
+    df: pd.DataFrame
+
+    @property
+    def budget(self) -> dict[str, Any]:
+        """The run's budget (episodes, caps)."""
+        return dict(self.meta["spec"]["budget"])
+
+
+def load_runs(runs_dir: Path) -> list[Run]:
+    """Load every complete run under ``runs_dir``."""
+    runs = []
+    for meta_path in sorted(runs_dir.glob("*/*/seed*.json")):
+        meta = json.loads(meta_path.read_text())
+        csv_path = meta_path.with_suffix(".csv")
+        if not meta.get("complete") or not csv_path.is_file():
+            continue
+        spec = meta["spec"]
+        runs.append(Run(spec["experiment"], spec["arm"], spec["seed"], meta, pd.read_csv(csv_path)))
+    return runs
+
+
+# -- metrics ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A per-run number; ``lower_is_better`` says which direction is an improvement."""
+
+    key: str
+    label: str
+    lower_is_better: bool
+    fmt: str = "{:,.0f}"
+
+
+METRICS: dict[str, list[Metric]] = {
+    "cartpole": [
+        Metric("mean_steps", "mean steps per episode, all episodes", False, "{:,.1f}"),
+        Metric("last100", "mean steps, last 100 episodes", False, "{:,.1f}"),
+        Metric("solved_ep", "episode solved (solved seeds only)", True),
+    ],
+    "mountaincar": [
+        Metric("total_steps", "total steps", True),
+        Metric("last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+    ],
+    "maze": [
+        Metric("total_steps", "total steps", True),
+        Metric("last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+    ],
+    "maze_modified": [
+        Metric("phase2_steps", "total steps after the switch", True),
+        Metric("phase1_steps", "total steps before the switch", True),
+        Metric("phase2_last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+    ],
+}
+
+#: The headline metric of each experiment (the paper's).
+HEADLINE = {
+    "cartpole": "mean_steps",
+    "mountaincar": "total_steps",
+    "maze": "total_steps",
+    "maze_modified": "phase2_steps",
+}
+
+PAPER: dict[str, dict[str, str]] = {
+    "cartpole": {
+        "plain": "not solved in 1000 episodes",
+        "pbrs": "not solved in 1000 episodes",
+        "knn": "not run",
+        "tamrm": "solved at episode 455",
+    },
+    "mountaincar": {
+        "plain": "Fig. 6: more steps than TAMRM (no number given)",
+        "pbrs": "Fig. 6: most steps (no number given)",
+        "knn": "not run",
+        "tamrm": "Fig. 6: fewest steps (no number given)",
+    },
+    "maze": {
+        "plain": "137,599",
+        "pbrs": "1,433,215",
+        "knn": "not run",
+        "tamrm": "127,478",
+    },
+    "maze_modified": {
+        "plain": "Fig. 10: slower to adapt than TAMRM (no number given)",
+        "pbrs": "not shown",
+        "knn": "not run",
+        "tamrm": "Fig. 10: adapts faster (no number given)",
+    },
+}
+
+
+def run_metrics(run: Run) -> dict[str, float]:
+    """The metrics of one run (``nan`` where undefined)."""
+    df = run.df
+    steps = df["steps"].to_numpy(dtype=np.float64)
+    out: dict[str, float] = {
+        "episodes": float(len(df)),
+        "total_steps": float(steps.sum()),
+        "last50": float(steps[-50:].mean()) if len(steps) else math.nan,
+        "successes": float(df["success"].sum()) if len(df) else 0.0,
+    }
+    if run.experiment == "cartpole":
+        solved = first_solved_episode(steps)
+        out["solved"] = 1.0 if solved is not None else 0.0
+        out["solved_ep"] = float(solved) if solved is not None else math.nan
+        out["mean_steps"] = float(steps.mean()) if len(steps) else math.nan
+        out["last100"] = float(steps[-100:].mean()) if len(steps) else math.nan
+    if run.experiment == "maze_modified":
+        switch = run.budget.get("switch_after") or 0
+        phase2 = df[df["episode"] > switch]["steps"].to_numpy(dtype=np.float64)
+        out["phase1_steps"] = float(df[df["episode"] <= switch]["steps"].sum())
+        out["phase2_steps"] = float(phase2.sum())
+        out["phase2_last50"] = float(phase2[-50:].mean()) if len(phase2) else math.nan
+    return out
+
+
+# -- formatting ------------------------------------------------------------------------
+
+
+def _fmt(value: float, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return fmt.format(value)
+
+
+def _fmt_interval(iv: Interval, fmt: str) -> str:
+    if iv.n == 0:
+        return "-"
+    if iv.n == 1 or math.isnan(iv.low):
+        return f"{_fmt(iv.mean, fmt)} (n=1)"
+    return f"{_fmt(iv.mean, fmt)} [{_fmt(iv.low, fmt)}, {_fmt(iv.high, fmt)}]"
+
+
+@dataclass
+class Comparison:
+    """Arm minus plain on one metric."""
+
+    arm: str
+    metric: Metric
+    diff: Interval
+    better: bool | None = None  # True better, False worse, None no detectable difference
+    text: str = field(default="")
+
+
+def compare(
+    metric: Metric, arm_values: list[float], plain_values: list[float], arm: str
+) -> Comparison:
+    """Welch interval of (arm - plain) and a verdict in words."""
+    diff = welch_interval(arm_values, plain_values)
+    if diff.n < 2 or not diff.excludes(0.0):
+        better = None
+    else:
+        better = (diff.high < 0) if metric.lower_is_better else (diff.low > 0)
+    rel = ""
+    base = float(np.nanmean(plain_values)) if len(plain_values) else math.nan
+    if base and not math.isnan(base) and not math.isnan(diff.mean):
+        rel = f" ({diff.mean / base:+.0%} of plain)"
+    ci = (
+        f"[{_fmt(diff.low, metric.fmt)}, {_fmt(diff.high, metric.fmt)}]"
+        if not math.isnan(diff.low)
+        else "[n/a]"
+    )
+    word = {True: "better", False: "worse", None: "no detectable difference"}[better]
+    text = f"{_fmt(diff.mean, metric.fmt)}{rel}, 95% CI {ci}: {word}"
+    return Comparison(arm, metric, diff, better, text)
+
+
+# -- plots -----------------------------------------------------------------------------
+
+
+def _curves(runs: list[Run], window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-episode mean over seeds of the smoothed steps, with a 95% t band."""
+    n = max(len(r.df) for r in runs)
+    mat = np.full((len(runs), n), np.nan)
+    for i, r in enumerate(runs):
+        sm = rolling_mean(r.df["steps"].to_numpy(dtype=np.float64), window)
+        mat[i, : sm.size] = sm
+    mean = np.nanmean(mat, axis=0)
+    low = np.full(n, np.nan)
+    high = np.full(n, np.nan)
+    for j in range(n):
+        iv = t_interval(mat[:, j])
+        low[j], high[j] = iv.low, iv.high
+    return np.arange(1, n + 1), mean, low, high
+
+
+def plot_experiment(exp_name: str, runs: list[Run], path: Path) -> None:
+    """Learning curve (steps per episode) of every arm: mean over seeds with a 95% band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    window = {"cartpole": 20}.get(exp_name, 10)
+    fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=110)
+    colors = {"plain": "#444444", "pbrs": "#1f77b4", "knn": "#2ca02c", "tamrm": "#d62728"}
+    for arm in ARMS:
+        arm_runs = [r for r in runs if r.arm == arm and len(r.df)]
+        if not arm_runs:
+            continue
+        x, mean, low, high = _curves(arm_runs, window)
+        ax.plot(x, mean, color=colors[arm], label=f"{ARMS[arm].label} (n={len(arm_runs)})", lw=1.4)
+        ax.fill_between(x, low, high, color=colors[arm], alpha=0.18, lw=0)
+    exp = EXPERIMENTS[exp_name]
+    if exp_name == "cartpole":
+        ax.axhline(195, color="k", ls=":", lw=0.8)
+        ax.set_ylabel(f"steps kept up (mean of last {window} episodes)")
+    else:
+        ax.set_yscale("log")
+        ax.set_ylabel(f"steps per episode (mean of last {window}, log)")
+    switch = runs[0].budget.get("switch_after") if runs else None
+    if switch:
+        ax.axvline(switch + 0.5, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("episode")
+    ax.set_title(f"{exp.title}: mean over seeds, band = 95% t-interval")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# -- the page --------------------------------------------------------------------------
+
+
+def _invocations(runs_dir: Path) -> list[dict[str, Any]]:
+    path = runs_dir / "invocations.jsonl"
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            continue
+    return out
+
+
+def _budget_line(exp_name: str, runs: list[Run]) -> str:
+    exp = EXPERIMENTS[exp_name]
+    budgets = {json.dumps(r.budget, sort_keys=True) for r in runs}
+    parts = []
+    for b in sorted(budgets):
+        bd = json.loads(b)
+        reduced = []
+        if bd["episodes"] < exp.episodes:
+            reduced.append(f"episodes {bd['episodes']} < paper's {exp.episodes}")
+        if bd["max_episode_steps"] < exp.max_episode_steps:
+            reduced.append(
+                f"episode cap {bd['max_episode_steps']:,} < {exp.max_episode_steps:,} steps"
+            )
+        note = ("; **reduced**: " + ", ".join(reduced)) if reduced else " (the paper's budget)"
+        parts.append(
+            f"{bd['episodes']} episodes, at most {bd['max_episode_steps']:,} steps per episode, "
+            f"at most {bd['max_total_steps']:,} steps per run{note}"
+        )
+    return "; ".join(parts)
+
+
+def _experiment_section(
+    exp_name: str, runs: list[Run], plots_rel: str, plots_dir: Path
+) -> tuple[list[str], dict[str, Any]]:
+    exp = EXPERIMENTS[exp_name]
+    lines = [f"## {exp.title}", ""]
+    if not runs:
+        return [*lines, "No finished runs.", ""], {}
+    metrics = {arm: [] for arm in ARMS}  # type: dict[str, list[dict[str, float]]]
+    censored = {arm: 0 for arm in ARMS}
+    for r in runs:
+        metrics[r.arm].append(run_metrics(r))
+        censored[r.arm] += int(bool(r.meta.get("censored")))
+    lines.append(f"Budget: {_budget_line(exp_name, runs)}.")
+    lines.append("")
+    mlist = METRICS[exp_name]
+    head = ["arm", "seeds", "paper"]
+    if exp_name == "cartpole":
+        head.append("seeds solved")
+    else:
+        head.append("seeds stopped by the step cap")
+    head += [m.label for m in mlist]
+    lines.append("| " + " | ".join(head) + " |")
+    lines.append("|" + "---|" * len(head))
+    for arm in ARMS:
+        ms = metrics[arm]
+        if not ms:
+            continue
+        row = [ARMS[arm].label, str(len(ms)), PAPER[exp_name][arm]]
+        if exp_name == "cartpole":
+            row.append(f"{int(sum(m['solved'] for m in ms))}/{len(ms)}")
+        else:
+            row.append(f"{censored[arm]}/{len(ms)}")
+        for m in mlist:
+            iv = t_interval([x[m.key] for x in ms])
+            cell = _fmt_interval(iv, m.fmt)
+            if censored[arm] and m.key in ("total_steps", "phase2_steps", "phase1_steps"):
+                cell = "≥ " + cell
+            row.append(cell)
+        lines.append("| " + " | ".join(row) + " |")
+    lines.append("")
+    lines.append(
+        "Cells: mean over seeds [95% Student-t confidence interval over seeds]. "
+        + (
+            "A run stopped by its total-step cap has fewer episodes; its totals are lower "
+            "bounds (marked ≥)."
+            if any(censored.values())
+            else ""
+        )
+    )
+    lines.append("")
+    head_metric = next(m for m in mlist if m.key == HEADLINE[exp_name])
+    plain = [m[head_metric.key] for m in metrics["plain"]]
+    comps: dict[str, Comparison] = {}
+    if plain:
+        lines.append(f"Difference to plain on *{head_metric.label}* (Welch 95% CI):")
+        lines.append("")
+        for arm in ARMS:
+            if arm == "plain" or not metrics[arm]:
+                continue
+            comp = compare(head_metric, [m[head_metric.key] for m in metrics[arm]], plain, arm)
+            comps[arm] = comp
+            lines.append(f"- {ARMS[arm].label}: {comp.text}")
+        lines.append("")
+    png = plots_dir / f"{exp_name}.png"
+    plot_experiment(exp_name, runs, png)
+    lines.append(f"![{exp.title}]({plots_rel}/{exp_name}.png)")
+    lines.append("")
+    return lines, {"metrics": metrics, "comparisons": comps, "censored": censored}
+
+
+def _agreement(exp_name: str, result: dict[str, Any]) -> str:
+    """One sentence per experiment: does our measurement agree with the paper's claim?"""
+    if not result:
+        return f"- **{EXPERIMENTS[exp_name].title}**: no data."
+    comps: dict[str, Comparison] = result["comparisons"]
+    metrics = result["metrics"]
+    title = EXPERIMENTS[exp_name].title
+
+    def verdict(arm: str) -> str:
+        c = comps.get(arm)
+        if c is None:
+            return "not measured"
+        return {
+            True: "better than plain",
+            False: "worse than plain",
+            None: "not distinguishable from plain",
+        }[c.better]
+
+    if exp_name == "cartpole":
+        solved = {
+            a: (int(sum(m["solved"] for m in ms)), len(ms)) for a, ms in metrics.items() if ms
+        }
+        s = ", ".join(f"{ARMS[a].label} {k}/{n}" for a, (k, n) in solved.items())
+        paper_ok = (
+            solved.get("tamrm", (0, 1))[0] > 0
+            and solved.get("plain", (0, 1))[0] == 0
+            and solved.get("pbrs", (0, 1))[0] == 0
+        )
+        tam_better = comps.get("tamrm") is not None and comps["tamrm"].better
+        agree = "agrees" if paper_ok and tam_better else "does not agree"
+        return (
+            f"- **{title}**: seeds solved: {s}. TAMRM is {verdict('tamrm')} on mean steps per "
+            f"episode; PBRS only {verdict('pbrs')}; kNN only {verdict('knn')}. The paper's claim "
+            f"(TAMRM solves, plain and PBRS do not) {agree} with what we measured."
+        )
+    tam = comps.get("tamrm")
+    claim = {
+        "mountaincar": "TAMRM needs fewer steps than plain DQN and DQN + PBRS",
+        "maze": "TAMRM needs fewer steps than plain DQN (-7%), PBRS about 10x more",
+        "maze_modified": "TAMRM with a fresh pool adapts to the new start faster than plain DQN",
+    }[exp_name]
+    agree = "agrees" if tam is not None and tam.better else "does not agree"
+    extra = ""
+    if exp_name in ("mountaincar", "maze"):
+        p = comps.get("pbrs")
+        if p is not None:
+            extra = f" PBRS only is {verdict('pbrs')}."
+    return (
+        f"- **{title}**: TAMRM is {verdict('tamrm')}; kNN only is {verdict('knn')}.{extra} "
+        f"The paper's claim ({claim}) {agree} with our measurement."
+    )
+
+
+DEVIATIONS = [
+    "The learners are Stable-Baselines3's A2C and DQN, not the authors' code; the shaped "
+    "reward R_meta comes from the tamrm server through `tamrm.sb3.ShapedVecEnv` (one gRPC "
+    "round trip per environment step), and the potential term uses the SB3 model's own "
+    "estimates (A2C: critic V(s); DQN: max_a Q(s, a) of the online network).",
+    "Where the paper is silent we use SB3 defaults (A2C: lr 7e-4, n_steps 5, gamma 0.99, "
+    "RMSprop, no entropy bonus). DQN: batch 32, learning starts after 200 steps, a gradient "
+    "step every 4 steps, target network copied every 200 steps (SB3's default of 10 000 is "
+    "longer than most runs).",
+    'The paper\'s DQN "decay rate 0.9" is read as the discount gamma = 0.9 (the epsilon is '
+    "fixed at 0.1 as the paper's \"epsilon 0.1\"). The server's gamma for the potential term "
+    "equals the learner's gamma in every experiment.",
+    'The kNN start threshold N (paper: "N > 0", no value) is the service default, 10; '
+    "min_pool_size is the pool capacity (the kNN term starts once the pool is full).",
+    "Cart pole: `CartPole-v0` of gymnasium (200-step episodes, pole limit 12 degrees; the "
+    "paper's text says 15). The training reward is +1 per step and -1 on the step that "
+    "fails; the truncation at 200 steps is not a failure. The metric is steps kept up.",
+    "Mountain car: `MountainCar-v0` dynamics without Gym's 200-step limit; each episode is "
+    "capped at a step limit (a truncation), stated with the budget below. Episode score: "
+    "the return (-steps).",
+    f"Maze: observation is the raw (x, y) cell as two floats; episode score 100/steps on "
+    f"success and 0 on a truncated failure. The start is {MAZE_START} (shortest path "
+    f"{maze_shortest_path(MAZE_START)} moves).",
+    f"Modified maze: after episode 100 the start moves to {MAZE_NEW_START} (our choice; "
+    f"shortest path {maze_shortest_path(MAZE_NEW_START)} moves). Every arm, plain included, "
+    "then continues on a new task id (a fresh, empty pool), as the paper prescribes; the "
+    "DQN keeps its network and replay buffer.",
+    "The plain arm also goes through the server (alpha = beta = 0), so that every arm runs "
+    "the same loop; PBRS only is alpha = 0, kNN only is beta = 0 (the ablation the paper "
+    "lacks).",
+    "Each run has a safety cap on its total steps; a run that reaches it stops early and "
+    "its totals are reported as lower bounds.",
+]
+
+
+def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
+    """Write the markdown page ``out`` and the plots into ``plots_dir``."""
+    runs = load_runs(runs_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        plots_rel = str(plots_dir.resolve().relative_to(out.parent.resolve()))
+    except ValueError:
+        plots_rel = str(plots_dir.resolve())
+    profiles = sorted({r.meta["spec"]["profile"] for r in runs})
+    seeds = sorted({r.seed for r in runs})
+    lines = [
+        "# Reproduction of the TAMRM paper's experiments",
+        "",
+        "*Generated by `python -m tamrm_experiments report` from the raw runs in "
+        f"`{runs_dir}`; do not edit by hand.*",
+        "",
+        "Question: does TAMRM shaping, served by tamrm, speed up learning? We rerun the "
+        "paper's three experiments (§V) with the real server and the Python client in the "
+        "loop, four arms each (plain, PBRS only, kNN only, TAMRM), several seeds, and "
+        "report means with 95% confidence intervals over seeds.",
+        "",
+    ]
+    if not runs:
+        lines += ["No finished runs yet.", ""]
+        out.write_text("\n".join(lines))
+        return
+    if "quick" in profiles:
+        lines += [
+            "> **Quick (smoke-test) profile**: tiny budgets, 1 seed. These numbers say "
+            "nothing about the method.",
+            "",
+        ]
+    sections: list[str] = []
+    results: dict[str, dict[str, Any]] = {}
+    for exp_name in EXPERIMENTS:
+        exp_runs = [r for r in runs if r.experiment == exp_name]
+        sec, res = _experiment_section(exp_name, exp_runs, plots_rel, plots_dir)
+        sections += sec
+        results[exp_name] = res
+
+    lines += ["## Summary", ""]
+    lines += [_agreement(e, results[e]) for e in EXPERIMENTS]
+    lines += [""]
+    lines += sections
+
+    # How it was run.
+    invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
+    wall = sum(float(i.get("wall_time_s", 0)) for i in invs)
+    run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
+    total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
+    commands = sorted({i["command"] for i in invs})
+    vers = runs[0].meta.get("versions", {})
+    diff_versions = sorted({json.dumps(r.meta.get("versions", {}), sort_keys=True) for r in runs})
+    lines += [
+        "## How this was run",
+        "",
+        f"- Profile(s): {', '.join(profiles)}; seeds {seeds[0]}..{seeds[-1]} "
+        f"({len(seeds)}); {len(runs)} finished runs.",
+        "- Command(s) (from the repository root, resumable; finished runs are skipped):",
+        "",
+        *[f"      {c}" for c in commands],
+        "",
+        f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
+        f"- Wall time of the run invocations: {wall / 60:.1f} min "
+        f"({len(invs)} invocation(s)); sum of per-run wall times {run_wall / 60:.1f} min; "
+        f"{total_steps:,} environment steps, each one gRPC round trip.",
+        "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
+    ]
+    if len(diff_versions) > 1:
+        n_sets = len(diff_versions)
+        lines.append(f"- Note: the runs were made with {n_sets} different version sets.")
+    lines += ["", "## Deviations from the paper", ""]
+    lines += [f"- {d}" for d in DEVIATIONS]
+    lines += [""]
+    out.write_text("\n".join(lines))
+
+
+MetricFn = Callable[[Run], float]

@@ -1,0 +1,554 @@
+"""One run (experiment, arm, seed) through the tamrm server, and the grid runner.
+
+A run trains a Stable-Baselines3 model on a ``ShapedVecEnv`` (the rewards it learns from
+are the server's R_meta) and writes one CSV row per finished episode. The CSV is written
+under a temporary name and renamed, together with a JSON sidecar, only when the run is
+complete: a finished run is never redone, an interrupted one is redone from scratch.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tamrm_experiments.configs import ARMS, EXPERIMENTS, RunSpec, arm_weights
+
+__all__ = [
+    "CSV_FIELDS",
+    "is_complete",
+    "run_grid",
+    "run_one",
+    "run_paths",
+    "versions",
+]
+
+CSV_FIELDS = [
+    "episode",
+    "steps",
+    "env_return",
+    "shaped_return",
+    "knn_sum",
+    "potential_sum",
+    "knn_active_steps",
+    "terminated",
+    "truncated",
+    "success",
+    "score",
+    "task_phase",
+    "pool_version",
+    "total_steps",
+    "wall_time",
+]
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def run_paths(out: Path, spec: RunSpec) -> tuple[Path, Path, Path]:
+    """Return (csv, partial csv, json sidecar) paths of ``spec`` under ``out``."""
+    stem = out / spec.experiment / spec.arm / f"seed{spec.seed}"
+    return stem.with_suffix(".csv"), stem.with_suffix(".csv.partial"), stem.with_suffix(".json")
+
+
+def is_complete(out: Path, spec: RunSpec) -> bool:
+    """Whether ``spec`` already has a finished run under ``out`` with the same settings."""
+    csv_path, _, meta_path = run_paths(out, spec)
+    if not (csv_path.is_file() and meta_path.is_file()):
+        return False
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError):
+        return False
+    return bool(meta.get("complete")) and meta.get("spec") == json.loads(json.dumps(spec.to_dict()))
+
+
+def _git_rev() -> str:
+    try:
+        rev = subprocess.run(
+            ["git", "-C", str(REPO), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(REPO), "status", "--porcelain", "--", "src", "proto", "clients"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return rev + ("+dirty" if dirty else "")
+
+
+def versions() -> dict[str, str]:
+    """Versions of everything that shapes the numbers."""
+    import gymnasium
+    import stable_baselines3
+    import tamrm
+    import torch
+
+    out = {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "stable_baselines3": stable_baselines3.__version__,
+        "gymnasium": gymnasium.__version__,
+        "tamrm_client": tamrm.__version__,
+        "tamrm_git": _git_rev(),
+        "cpu_count": str(os.cpu_count()),
+    }
+    try:
+        binary = tamrm.find_binary()
+        out["tamrm_server"] = subprocess.run(
+            [str(binary), "--version"], capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        out["tamrm_server_sha256"] = hashlib.sha256(binary.read_bytes()).hexdigest()[:16]
+    except Exception:  # informational only
+        out["tamrm_server"] = "unknown"
+    return out
+
+
+# -- environments ----------------------------------------------------------------------
+
+
+def make_env(spec: RunSpec) -> Callable[[], Any]:
+    """Return a factory of the run's (single) environment."""
+    from tamrm_experiments import envs
+
+    exp = EXPERIMENTS[spec.experiment]
+    cap = spec.budget.max_episode_steps
+    if exp.env == "cartpole":
+        return envs.make_cartpole
+    if exp.env == "mountaincar":
+        return lambda: envs.make_mountain_car(cap)
+    if exp.env == "maze":
+        return lambda: envs.make_maze(cap, spec.budget.switch_after)
+    raise ValueError(f"unknown env {exp.env!r}")
+
+
+class _InfoTap:
+    """Remembers the ``infos`` of the last vector step (wrapped below ``ShapedVecEnv``)."""
+
+    last_infos: list[dict[str, Any]]
+
+    def __init__(self) -> None:
+        self.last_infos = []
+
+
+def _tap_wrapper(venv: Any, tap: _InfoTap) -> Any:
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class InfoTap(VecEnvWrapper):  # type: ignore[misc]
+        def reset(self) -> Any:
+            return self.venv.reset()
+
+        def step_wait(self) -> Any:
+            obs, rewards, dones, infos = self.venv.step_wait()
+            tap.last_infos = infos
+            return obs, rewards, dones, infos
+
+    return InfoTap(venv)
+
+
+class ScoredSession:
+    """A session proxy that adds ``episode_scores`` from the env's infos, and can switch
+    to another session (a fresh task) between episodes.
+
+    ``tamrm.sb3.ShapedVecEnv`` has no way to send client-side episode scores; this proxy
+    (passed to it as its session) adds ``info["episode_score"]`` of the rows that end an
+    episode. Everything else is forwarded to the current session.
+    """
+
+    def __init__(self, session: Any, tap: _InfoTap | None) -> None:
+        self.inner = session
+        self.tap = tap
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def step(self, actions: Any, rewards: Any, terminated: Any, truncated: Any, **kw: Any) -> Any:
+        if self.tap is not None:
+            done = np.asarray(terminated) | np.asarray(truncated)
+            scores = {
+                i: float(info["episode_score"])
+                for i, info in enumerate(self.tap.last_infos)
+                if done[i] and "episode_score" in info
+            }
+            if scores:
+                kw["episode_scores"] = scores
+        return self.inner.step(actions, rewards, terminated, truncated, **kw)
+
+    def switch(self, session: Any) -> None:
+        old, self.inner = self.inner, session
+        old.close()
+
+
+# -- one run ---------------------------------------------------------------------------
+
+
+@dataclass
+class _Episode:
+    steps: int = 0
+    env_return: float = 0.0
+    shaped_return: float = 0.0
+    knn_sum: float = 0.0
+    potential_sum: float = 0.0
+    knn_active_steps: int = 0
+
+
+def _make_callback(
+    spec: RunSpec,
+    writer: Any,
+    fh: Any,
+    progress: Callable[[int], None],
+    on_episode: Callable[[int], None],
+) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    budget = spec.budget
+    success_is_truncation = EXPERIMENTS[spec.experiment].env == "cartpole"
+
+    class EpisodeRecorder(BaseCallback):  # type: ignore[misc]
+        """Writes one row per finished episode; stops at the episode or step budget."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.episodes = 0
+            self.total_steps = 0
+            self.phase = 0
+            self.start = time.monotonic()
+            self.cur = _Episode()
+            self.stopped_by_steps = False
+
+        def _on_step(self) -> bool:
+            infos = self.locals["infos"]
+            dones = self.locals["dones"]
+            rewards = self.locals["rewards"]
+            for i, info in enumerate(infos):
+                self.total_steps += 1
+                ep = self.cur
+                ep.steps += 1
+                ep.env_return += float(info.get("original_reward", 0.0))
+                ep.shaped_return += float(rewards[i])
+                ep.knn_sum += float(info.get("knn_reward", 0.0))
+                ep.potential_sum += float(info.get("potential", 0.0))
+                ep.knn_active_steps += int(bool(info.get("knn_active", False)))
+                if not dones[i]:
+                    continue
+                truncated = bool(info.get("TimeLimit.truncated", False))
+                self.episodes += 1
+                writer.writerow(
+                    {
+                        "episode": self.episodes,
+                        "steps": ep.steps,
+                        "env_return": ep.env_return,
+                        "shaped_return": round(ep.shaped_return, 6),
+                        "knn_sum": round(ep.knn_sum, 6),
+                        "potential_sum": round(ep.potential_sum, 6),
+                        "knn_active_steps": ep.knn_active_steps,
+                        "terminated": int(not truncated),
+                        "truncated": int(truncated),
+                        # Cart pole: kept up for the whole episode; elsewhere: reached the goal.
+                        "success": int(truncated if success_is_truncation else not truncated),
+                        "score": info.get("episode_score", ep.env_return),
+                        "task_phase": self.phase,
+                        "pool_version": info.get("pool_version", 0),
+                        "total_steps": self.total_steps,
+                        "wall_time": round(time.monotonic() - self.start, 3),
+                    }
+                )
+                fh.flush()
+                self.cur = _Episode()
+                progress(1)
+                if budget.switch_after is not None and self.episodes == budget.switch_after:
+                    self.phase += 1
+                    on_episode(self.episodes)
+            if self.episodes >= budget.episodes:
+                return False
+            if self.total_steps >= budget.max_total_steps:
+                self.stopped_by_steps = True
+                return False
+            return True
+
+    return EpisodeRecorder()
+
+
+def run_one(
+    spec: RunSpec,
+    address: str,
+    out: Path,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Run ``spec`` against the server at ``address``; write its CSV and JSON under ``out``.
+
+    Returns the JSON sidecar's content.
+    """
+    import tamrm
+    import torch
+    from stable_baselines3 import A2C, DQN
+    from stable_baselines3.common.vec_env import DummyVecEnv
+    from tamrm.sb3 import ShapedVecEnv
+
+    torch.set_num_threads(1)
+    progress = progress or (lambda _n: None)
+    exp = EXPERIMENTS[spec.experiment]
+    alpha, beta = arm_weights(exp, ARMS[spec.arm])
+    task_cfg = {**exp.tamrm, "alpha": alpha, "beta": beta}
+    csv_path, partial, meta_path = run_paths(out, spec)
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in (csv_path, meta_path):
+        stale.unlink(missing_ok=True)
+
+    base_id = f"{spec.experiment}/{spec.arm}/s{spec.seed}/{uuid.uuid4().hex[:12]}"
+    task_ids = [base_id]
+    started = time.time()
+    t0 = time.monotonic()
+    with tamrm.Client(address) as client:
+        env_cls = exp.env
+        client.create_task(base_id, num_actions=_num_actions(env_cls), **task_cfg)
+        tap = _InfoTap() if exp.score_from_info else None
+        venv: Any = DummyVecEnv([make_env(spec)])
+        if tap is not None:
+            venv = _tap_wrapper(venv, tap)
+        session = ScoredSession(client.session(base_id, 1), tap)
+        shaped = ShapedVecEnv(venv, session)  # type: ignore[arg-type]
+
+        def switch_task(_episode: int) -> None:
+            # Modified maze: the start moved, a new task with a fresh pool (paper §IV-B).
+            new_id = f"{base_id}/p{len(task_ids)}"
+            client.create_task(new_id, num_actions=_num_actions(env_cls), **task_cfg)
+            task_ids.append(new_id)
+            session.switch(client.session(new_id, 1))
+
+        algo = {"a2c": A2C, "dqn": DQN}[exp.algo]
+        # SB3 mutates policy_kwargs (A2C adds its optimizer class): pass a copy.
+        kwargs = copy.deepcopy(exp.algo_kwargs)
+        model = algo("MlpPolicy", shaped, seed=spec.seed, device="cpu", **kwargs)
+        shaped.bind_model(model)
+        with open(partial, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
+            writer.writeheader()
+            callback = _make_callback(spec, writer, fh, progress, switch_task)
+            model.learn(total_timesteps=spec.budget.max_total_steps + 1, callback=callback)
+        session.close()
+        final_pools = {}
+        for tid in task_ids:
+            task = client.get_task(tid)
+            final_pools[tid] = {
+                "pool_size": task.stats.pool_size,
+                "pool_version": task.stats.pool_version,
+                "best_score": task.stats.best_score,
+                "worst_score": task.stats.worst_score,
+                "min_length": task.stats.min_length,
+                "episodes_completed": task.stats.episodes_completed,
+                "steps_shaped": task.stats.steps_shaped,
+            }
+            client.delete_task(tid)
+    wall = time.monotonic() - t0
+    censored = callback.episodes < spec.budget.episodes
+    meta = {
+        "spec": spec.to_dict(),
+        "complete": True,
+        "episodes": callback.episodes,
+        "total_steps": callback.total_steps,
+        "censored": censored,
+        "wall_time_s": round(wall, 2),
+        "steps_per_s": round(callback.total_steps / wall, 1) if wall > 0 else None,
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
+        "task_ids": task_ids,
+        "final_pools": final_pools,
+        "versions": versions(),
+    }
+    os.replace(partial, csv_path)
+    tmp_meta = meta_path.with_suffix(".json.tmp")
+    tmp_meta.write_text(json.dumps(meta, indent=1))
+    os.replace(tmp_meta, meta_path)
+    return meta
+
+
+def _num_actions(env: str) -> int:
+    return {"cartpole": 2, "mountaincar": 3, "maze": 4}[env]
+
+
+# -- the grid --------------------------------------------------------------------------
+
+_QUEUE: Any = None
+
+
+def _worker_init(queue: Any) -> None:
+    global _QUEUE
+    _QUEUE = queue
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _worker_run(spec: RunSpec, address: str, out: str) -> dict[str, Any]:
+    queue = _QUEUE
+
+    def progress(n: int) -> None:
+        if queue is not None:
+            queue.put((spec.key, n))
+
+    return run_one(spec, address, Path(out), progress)
+
+
+def run_grid(
+    specs: list[RunSpec],
+    out: Path,
+    jobs: int,
+    address: str | None = None,
+    show_progress: bool = True,
+) -> dict[str, Any]:
+    """Run every spec not yet complete under ``out`` on ``jobs`` processes.
+
+    Starts one local tamrm server shared by all workers unless ``address`` is given.
+    Returns a summary (runs done, skipped, failed, wall time).
+    """
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    out.mkdir(parents=True, exist_ok=True)
+    todo = [s for s in specs if not is_complete(out, s)]
+    skipped = len(specs) - len(todo)
+    summary: dict[str, Any] = {
+        "command": " ".join([Path(sys.executable).name, "-m", "tamrm_experiments", *sys.argv[1:]]),
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "runs_total": len(specs),
+        "runs_skipped_complete": skipped,
+        "runs_todo": len(todo),
+        "jobs": jobs,
+        "failed": [],
+    }
+    t0 = time.monotonic()
+    import signal
+
+    def _on_term(_sig: int, _frame: Any) -> None:
+        raise SystemExit(143)
+
+    signal.signal(signal.SIGTERM, _on_term)
+    try:
+        if todo and address is None:
+            import tamrm
+
+            with tamrm.local_server() as server:
+                summary["server"] = str(server.process.args[0])
+                _run_pool(todo, server.address, out, jobs, summary, show_progress, mp, tqdm)
+        elif todo:
+            _run_pool(todo, address, out, jobs, summary, show_progress, mp, tqdm)
+    finally:
+        summary["wall_time_s"] = round(time.monotonic() - t0, 1)
+        summary["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        with open(out / "invocations.jsonl", "a") as fh:
+            fh.write(json.dumps(summary) + "\n")
+    return summary
+
+
+def _run_pool(
+    todo: list[RunSpec],
+    address: str,
+    out: Path,
+    jobs: int,
+    summary: dict[str, Any],
+    show_progress: bool,
+    mp: Any,
+    tqdm: Any,
+) -> None:
+    ctx = mp.get_context("spawn")
+    manager = ctx.Manager()
+    queue = manager.Queue()
+    total_eps = sum(s.budget.episodes for s in todo)
+    disable = not show_progress
+    runs_bar = tqdm(total=len(todo), desc="runs", position=0, disable=disable, unit="run")
+    eps_bar = tqdm(total=total_eps, desc="episodes", position=1, disable=disable, unit="ep")
+    running: dict[str, Any] = {}
+    totals = {s.key: s.budget.episodes for s in todo}
+    pool = ProcessPoolExecutor(
+        max_workers=jobs, mp_context=ctx, initializer=_worker_init, initargs=(queue,)
+    )
+    interrupted = False
+    try:
+        futures: dict[Future[dict[str, Any]], RunSpec] = {
+            pool.submit(_worker_run, s, address, str(out)): s for s in todo
+        }
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+            _drain(queue, eps_bar, running, totals, tqdm, disable)
+            for fut in done:
+                spec = futures[fut]
+                bar = running.pop(spec.key, None)
+                if bar is not None:
+                    bar.close()
+                try:
+                    meta = fut.result()
+                    eps_bar.update(max(0, spec.budget.episodes - meta["episodes"]))
+                except Exception as exc:  # reported; the grid goes on
+                    summary["failed"].append({"run": spec.key, "error": repr(exc)})
+                    tqdm.write(f"FAILED {spec.key}: {exc!r}")
+                runs_bar.update(1)
+        _drain(queue, eps_bar, running, totals, tqdm, disable)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM): stop the workers now; their runs stay unfinished
+        # (.csv.partial) and are redone by the next invocation.
+        interrupted = True
+        summary["interrupted"] = True
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            proc.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=not interrupted, cancel_futures=True)
+        for bar in running.values():
+            bar.close()
+        eps_bar.close()
+        runs_bar.close()
+        manager.shutdown()
+
+
+def _drain(
+    queue: Any,
+    eps_bar: Any,
+    running: dict[str, Any],
+    totals: dict[str, int],
+    tqdm: Any,
+    disable: bool,
+) -> None:
+    import queue as queue_mod
+
+    while True:
+        try:
+            key, n = queue.get_nowait()
+        except queue_mod.Empty:
+            return
+        except (EOFError, OSError):
+            return
+        bar = running.get(key)
+        if bar is None:
+            bar = tqdm(
+                total=totals.get(key),
+                desc=key,
+                position=2 + len(running),
+                leave=False,
+                disable=disable,
+                unit="ep",
+            )
+            running[key] = bar
+        bar.update(n)
+        eps_bar.update(n)

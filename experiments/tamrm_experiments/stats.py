@@ -1,0 +1,105 @@
+"""Statistics of the report: t-intervals over seeds and per-run metrics."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats as sps
+
+__all__ = [
+    "Interval",
+    "first_solved_episode",
+    "rolling_mean",
+    "t_interval",
+    "welch_interval",
+]
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A mean with a two-sided confidence interval (``nan`` bounds when n < 2)."""
+
+    mean: float
+    low: float
+    high: float
+    n: int
+
+    @property
+    def half_width(self) -> float:
+        """Half the interval's width."""
+        return (self.high - self.low) / 2
+
+    def excludes(self, value: float) -> bool:
+        """Whether the interval lies entirely on one side of ``value``."""
+        if math.isnan(self.low) or math.isnan(self.high):
+            return False
+        return value < self.low or value > self.high
+
+
+def t_interval(values: Sequence[float], confidence: float = 0.95) -> Interval:
+    """Student-t confidence interval of the mean of ``values`` (independent seeds)."""
+    x = np.asarray(values, dtype=np.float64)
+    x = x[~np.isnan(x)]
+    n = int(x.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    mean = float(x.mean())
+    if n == 1:
+        return Interval(mean, math.nan, math.nan, 1)
+    se = float(x.std(ddof=1)) / math.sqrt(n)
+    if se == 0.0:
+        return Interval(mean, mean, mean, n)
+    h = float(sps.t.ppf((1 + confidence) / 2, n - 1)) * se
+    return Interval(mean, mean - h, mean + h, n)
+
+
+def welch_interval(a: Sequence[float], b: Sequence[float], confidence: float = 0.95) -> Interval:
+    """Welch-t confidence interval of ``mean(a) - mean(b)`` (unequal variances)."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    x = x[~np.isnan(x)]
+    y = y[~np.isnan(y)]
+    n = min(x.size, y.size)
+    if x.size == 0 or y.size == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    diff = float(x.mean() - y.mean())
+    if x.size < 2 or y.size < 2:
+        return Interval(diff, math.nan, math.nan, n)
+    vx = float(x.var(ddof=1)) / x.size
+    vy = float(y.var(ddof=1)) / y.size
+    se = math.sqrt(vx + vy)
+    if se == 0.0:
+        return Interval(diff, diff, diff, n)
+    df = (vx + vy) ** 2 / (vx**2 / (x.size - 1) + vy**2 / (y.size - 1))
+    h = float(sps.t.ppf((1 + confidence) / 2, df)) * se
+    return Interval(diff, diff - h, diff + h, n)
+
+
+def rolling_mean(values: Sequence[float], window: int) -> np.ndarray:
+    """Trailing mean over up to ``window`` values (shorter at the start)."""
+    x = np.asarray(values, dtype=np.float64)
+    if x.size == 0:
+        return x
+    c = np.cumsum(np.insert(x, 0, 0.0))
+    idx = np.arange(1, x.size + 1)
+    lo = np.maximum(0, idx - window)
+    return (c[idx] - c[lo]) / (idx - lo)
+
+
+def first_solved_episode(
+    steps: Sequence[float], threshold: float = 195.0, window: int = 100
+) -> int | None:
+    """First episode (1-based) at which the mean of the last ``window`` episodes reaches
+    ``threshold``; ``None`` if never. Needs ``window`` full episodes."""
+    x = np.asarray(steps, dtype=np.float64)
+    if x.size < window:
+        return None
+    c = np.cumsum(np.insert(x, 0, 0.0))
+    means = (c[window:] - c[:-window]) / window
+    hits = np.flatnonzero(means >= threshold)
+    if hits.size == 0:
+        return None
+    return int(hits[0]) + window

@@ -1,0 +1,81 @@
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from tamrm_experiments.configs import make_specs
+from tamrm_experiments.run import is_complete, run_paths
+from tamrm_experiments.stats import (
+    first_solved_episode,
+    rolling_mean,
+    t_interval,
+    welch_interval,
+)
+
+
+def test_t_interval_matches_scipy():
+    data = [3.1, 4.7, 2.2, 5.9, 4.4, 3.8]
+    iv = t_interval(data)
+    lo, hi = sps.t.interval(0.95, len(data) - 1, loc=np.mean(data), scale=sps.sem(data))
+    assert iv.mean == pytest.approx(np.mean(data))
+    assert iv.low == pytest.approx(lo)
+    assert iv.high == pytest.approx(hi)
+    assert iv.n == 6
+
+
+def test_t_interval_edge_cases():
+    assert math.isnan(t_interval([]).mean)
+    one = t_interval([2.0])
+    assert one.mean == 2.0 and math.isnan(one.low)
+    const = t_interval([1.0, 1.0, 1.0])
+    assert (const.low, const.high) == (1.0, 1.0)
+    assert t_interval([1.0, float("nan"), 3.0]).n == 2
+
+
+def test_welch_matches_scipy():
+    a = [10.0, 12.0, 9.5, 11.0, 13.5]
+    b = [7.0, 8.5, 6.0, 9.0, 7.5, 8.0]
+    iv = welch_interval(a, b)
+    res = sps.ttest_ind(a, b, equal_var=False)
+    ci = res.confidence_interval(0.95)
+    assert iv.mean == pytest.approx(np.mean(a) - np.mean(b))
+    assert iv.low == pytest.approx(ci.low)
+    assert iv.high == pytest.approx(ci.high)
+    assert iv.excludes(0.0)
+
+
+def test_rolling_and_solved():
+    assert list(rolling_mean([1, 2, 3, 4], 2)) == [1, 1.5, 2.5, 3.5]
+    steps = [100] * 150 + [200] * 200
+    # mean of the last 100 reaches 195 once 95 of them are 200: episode 150 + 95
+    assert first_solved_episode(steps) == 245
+    assert first_solved_episode([200] * 99) is None
+    assert first_solved_episode([200] * 100) == 100
+    assert first_solved_episode([150] * 500) is None
+
+
+def test_complete_run_is_skipped_and_partial_is_not(tmp_path):
+    spec = make_specs("quick", seeds=1, experiments=["maze"], arms=["plain"])[0]
+    assert not is_complete(tmp_path, spec)
+    csv_path, partial, meta_path = run_paths(tmp_path, spec)
+    csv_path.parent.mkdir(parents=True)
+    partial.write_text("episode\n1\n")
+    assert not is_complete(tmp_path, spec)
+    csv_path.write_text("episode\n1\n")
+    meta_path.write_text(json.dumps({"complete": True, "spec": spec.to_dict()}))
+    assert is_complete(tmp_path, spec)
+    # A different budget (e.g. a later, longer run) is not the same run.
+    other = make_specs("full", seeds=1, experiments=["maze"], arms=["plain"])[0]
+    assert run_paths(tmp_path, other)[0] == csv_path
+    assert not is_complete(tmp_path, other)
+    meta_path.write_text("{not json")
+    assert not is_complete(tmp_path, spec)
+
+
+def test_grid_is_seed_major():
+    specs = make_specs("full", seeds=2)
+    assert len(specs) == 2 * 4 * 4
+    assert {s.seed for s in specs[:16]} == {0}
+    assert len({s.key for s in specs}) == len(specs)
