@@ -361,6 +361,7 @@ def _experiment_section(
             comps[arm] = comp
             lines.append(f"- {ARMS[arm].label}: {comp.text}")
         lines.append("")
+    lines += _diagnostics(runs)
     png = plots_dir / f"{exp_name}.png"
     plot_experiment(exp_name, runs, png)
     lines.append(f"![{exp.title}]({plots_rel}/{exp_name}.png)")
@@ -396,20 +397,28 @@ def _agreement(exp_name: str, result: dict[str, Any]) -> str:
             and solved.get("plain", (0, 1))[0] == 0
             and solved.get("pbrs", (0, 1))[0] == 0
         )
-        tam_better = comps.get("tamrm") is not None and comps["tamrm"].better
-        agree = "agrees" if paper_ok and tam_better else "does not agree"
+        tam = comps.get("tamrm")
+        if paper_ok and tam is not None and tam.better:
+            agree = "reproduced"
+        elif tam is not None and tam.better is False:
+            agree = "contradicted (TAMRM is worse than plain)"
+        elif solved.get("plain", (0, 1))[0] > 0 and solved.get("tamrm", (0, 1))[0] == 0:
+            agree = "contradicted (plain solves, TAMRM does not)"
+        else:
+            agree = "not reproduced"
         return (
             f"- **{title}**: seeds solved: {s}. TAMRM is {verdict('tamrm')} on mean steps per "
             f"episode; PBRS only {verdict('pbrs')}; kNN only {verdict('knn')}. The paper's claim "
-            f"(TAMRM solves, plain and PBRS do not) {agree} with what we measured."
+            f"(TAMRM solves, plain and PBRS do not): {agree}."
         )
     tam = comps.get("tamrm")
-    claim = {
+    claim_map = {
         "mountaincar": "TAMRM needs fewer steps than plain DQN and DQN + PBRS",
         "maze": "TAMRM needs fewer steps than plain DQN (-7%), PBRS about 10x more",
         "maze_modified": "TAMRM with a fresh pool adapts to the new start faster than plain DQN",
-    }[exp_name]
-    agree = "agrees" if tam is not None and tam.better else "does not agree"
+    }
+    claim = claim_map[exp_name]
+    agree = _claim_word(tam.better if tam is not None else None)
     extra = ""
     if exp_name in ("mountaincar", "maze"):
         p = comps.get("pbrs")
@@ -417,8 +426,88 @@ def _agreement(exp_name: str, result: dict[str, Any]) -> str:
             extra = f" PBRS only is {verdict('pbrs')}."
     return (
         f"- **{title}**: TAMRM is {verdict('tamrm')}; kNN only is {verdict('knn')}.{extra} "
-        f"The paper's claim ({claim}) {agree} with our measurement."
+        f"The paper's claim ({claim}): {agree}."
     )
+
+
+def _answer(results: dict[str, dict[str, Any]], runs: list[Run]) -> list[str]:
+    """The headline: per arm, in how many experiments it beat plain, lost, or tied."""
+    lines = []
+    reduced = []
+    for exp_name, exp in EXPERIMENTS.items():
+        budgets = {json.dumps(r.budget, sort_keys=True) for r in runs if r.experiment == exp_name}
+        for b in budgets:
+            bd = json.loads(b)
+            if bd["episodes"] < exp.episodes:
+                reduced.append(f"{exp.title}: {bd['episodes']} episodes instead of {exp.episodes}")
+    if reduced:
+        lines += [
+            "> **Reduced budgets** (to fit the compute of one session; see each experiment): "
+            + "; ".join(reduced)
+            + ".",
+            "",
+        ]
+    for arm in ("tamrm", "knn", "pbrs"):
+        counts = {True: [], False: [], None: []}  # type: dict[bool | None, list[str]]
+        for exp_name, res in results.items():
+            comp = res.get("comparisons", {}).get(arm) if res else None
+            if comp is not None:
+                counts[comp.better].append(EXPERIMENTS[exp_name].title.split(" (")[0])
+        n = sum(len(v) for v in counts.values())
+        if not n:
+            continue
+        parts = []
+        for key, word in ((True, "better"), (False, "worse"), (None, "not distinguishable")):
+            if counts[key]:
+                parts.append(f"{word} in {len(counts[key])} ({', '.join(counts[key])})")
+        lines.append(
+            f"- **{ARMS[arm].label}** vs plain, on each experiment's headline metric "
+            f"(Welch 95% CI over seeds): " + "; ".join(parts) + f" of {n} experiments."
+        )
+    lines.append("")
+    return lines
+
+
+def _claim_word(better: bool | None) -> str:
+    return {
+        True: "reproduced (TAMRM significantly better than plain)",
+        False: "contradicted (TAMRM significantly worse than plain)",
+        None: "not reproduced (no difference detectable at 95% with these seeds)",
+    }[better]
+
+
+def _diagnostics(runs: list[Run]) -> list[str]:
+    """Per arm: how much each shaping term contributed, per step."""
+    lines = [
+        "Shaping diagnostics (mean over seeds of per-run totals / steps): the kNN reward "
+        "r(t) and the potential term F as computed by the server, before the weights "
+        "alpha and beta, and the share of steps where the kNN term was active.",
+        "",
+        "| arm | r(t) per step | F per step | kNN active | shaped minus env reward per step |",
+        "|---|---|---|---|---|",
+    ]
+    for arm in ARMS:
+        rs = [r for r in runs if r.arm == arm and len(r.df)]
+        if not rs:
+            continue
+
+        def per_step(col: str, rs: list[Run] = rs) -> float:
+            return float(np.mean([r.df[col].sum() / r.df["steps"].sum() for r in rs]))
+
+        shaped = float(
+            np.mean(
+                [
+                    (r.df["shaped_return"].sum() - r.df["env_return"].sum()) / r.df["steps"].sum()
+                    for r in rs
+                ]
+            )
+        )
+        lines.append(
+            f"| {ARMS[arm].label} | {per_step('knn_sum'):+.3f} | {per_step('potential_sum'):+.3f}"
+            f" | {per_step('knn_active_steps'):.0%} | {shaped:+.3f} |"
+        )
+    lines.append("")
+    return lines
 
 
 DEVIATIONS = [
@@ -444,8 +533,9 @@ DEVIATIONS = [
     f"Maze: observation is the raw (x, y) cell as two floats; episode score 100/steps on "
     f"success and 0 on a truncated failure. The start is {MAZE_START} (shortest path "
     f"{maze_shortest_path(MAZE_START)} moves).",
-    f"Modified maze: after episode 100 the start moves to {MAZE_NEW_START} (our choice; "
-    f"shortest path {maze_shortest_path(MAZE_NEW_START)} moves). Every arm, plain included, "
+    "Modified maze: after the switch episode (paper: 100; ours: see its budget) the start "
+    f"moves to {MAZE_NEW_START} (our choice; shortest path "
+    f"{maze_shortest_path(MAZE_NEW_START)} moves). Every arm, plain included, "
     "then continues on a new task id (a fresh, empty pool), as the paper prescribes; the "
     "DQN keeps its network and replay buffer.",
     "The plain arm also goes through the server (alpha = beta = 0), so that every arm runs "
@@ -496,7 +586,9 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         sections += sec
         results[exp_name] = res
 
-    lines += ["## Summary", ""]
+    lines += ["## Answer", ""]
+    lines += _answer(results, runs)
+    lines += ["## Summary per experiment", ""]
     lines += [_agreement(e, results[e]) for e in EXPERIMENTS]
     lines += [""]
     lines += sections
