@@ -105,6 +105,20 @@ fn check_format(path: &Path, format: u32) -> Result<(), StoreError> {
     Ok(())
 }
 
+/// Removes `*.tmp` files directly in `dir`: the halves of atomic writes that never
+/// reached their rename, so never acknowledged.
+fn remove_tmp_files(dir: &Path) -> Result<(), StoreError> {
+    let entries = fs::read_dir(dir).map_err(|e| err(dir, format!("read: {e}")))?;
+    for entry in entries {
+        let path = entry.map_err(|e| err(dir, e))?.path();
+        if path.is_file() && path.extension().is_some_and(|x| x == "tmp") {
+            tracing::info!(file = %path.display(), "removing an interrupted write's temporary file");
+            fs::remove_file(&path).map_err(|e| err(&path, format!("remove: {e}")))?;
+        }
+    }
+    Ok(())
+}
+
 /// FNV-1a, 64 bit: a stable hash for directory names (std's hasher is not stable).
 fn fnv1a(s: &str) -> u64 {
     s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
@@ -255,6 +269,7 @@ impl DiskStore {
         let root = root.into();
         let tasks = root.join("tasks");
         fs::create_dir_all(&tasks).map_err(|e| err(&tasks, format!("create: {e}")))?;
+        remove_tmp_files(&root)?;
         let marker = root.join("tamrm.json");
         if marker.exists() {
             let f: RootFile = read_json(&marker)?;
@@ -299,6 +314,7 @@ impl DiskStore {
     }
 
     fn load_task(&self, dir: &Path) -> Result<StoredTask, StoreError> {
+        remove_tmp_files(dir)?;
         let task_path = dir.join("task.json");
         let task: TaskFile = read_json(&task_path)?;
         check_format(&task_path, task.format)?;
