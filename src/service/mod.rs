@@ -52,6 +52,18 @@ impl ShapingService {
         self.registry.get(id)
     }
 
+    /// An answer larger than `max_message_bytes` could not be sent; say so clearly
+    /// instead of failing in the transport.
+    fn fits(&self, what: &str, msg: &impl prost::Message) -> Result<(), Error> {
+        let (len, max) = (msg.encoded_len(), self.registry.limits().max_message_bytes);
+        if len > max {
+            return Err(Error::ResourceExhausted(format!(
+                "{what}: the answer is {len} bytes, over this server's limit max_message_bytes = {max}"
+            )));
+        }
+        Ok(())
+    }
+
     fn durable(&self) -> bool {
         self.registry.is_durable()
     }
@@ -86,7 +98,9 @@ impl Shaping for ShapingService {
         _request: Request<proto::ListTasksRequest>,
     ) -> Result<Response<proto::ListTasksResponse>, Status> {
         let tasks = self.registry.list().iter().map(|t| task_proto(t)).collect();
-        Ok(Response::new(proto::ListTasksResponse { tasks }))
+        let msg = proto::ListTasksResponse { tasks };
+        self.fits("tasks", &msg)?;
+        Ok(Response::new(msg))
     }
 
     async fn delete_task(
@@ -116,7 +130,9 @@ impl Shaping for ShapingService {
     ) -> Result<Response<proto::Pool>, Status> {
         let task = self.task(&request.get_ref().task_id)?;
         let pool = task.pool_snapshot()?;
-        Ok(Response::new(pool_proto(task.id(), &pool)))
+        let msg = pool_proto(task.id(), &pool);
+        self.fits("pool", &msg)?;
+        Ok(Response::new(msg))
     }
 
     async fn add_trajectory(

@@ -42,6 +42,16 @@ pub fn step_entries<'a>(
             limits.max_batch_entries
         )));
     }
+    // The answer carries per entry three doubles, a varint step (at most 5 bytes) and a
+    // bool, plus framing: refuse, before applying anything, a batch whose answer could
+    // not be sent.
+    let answer_bytes = b.saturating_mul(3 * 8 + 5 + 1).saturating_add(64);
+    if answer_bytes > limits.max_message_bytes {
+        return Err(Error::ResourceExhausted(format!(
+            "steps: the answer to {b} entries (up to {answer_bytes} bytes) would exceed this server's limit max_message_bytes = {}",
+            limits.max_message_bytes
+        )));
+    }
     if batch.env_ids.is_empty() {
         if b > num_envs {
             return Err(Error::invalid(
