@@ -430,6 +430,99 @@ def _agreement(exp_name: str, result: dict[str, Any]) -> str:
     )
 
 
+def _claims(results: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
+    """The paper's claims, each with our verdict: reproduced, contradicted or undecided."""
+    out: list[tuple[str, str]] = []
+
+    def cat(better: bool | None, want: bool) -> str:
+        if better is None:
+            return "undecided"
+        return "reproduced" if better == want else "contradicted"
+
+    for exp_name, res in results.items():
+        if not res:
+            continue
+        comps: dict[str, Comparison] = res["comparisons"]
+        title = EXPERIMENTS[exp_name].title.split(" (")[0]
+        tam, pbrs = comps.get("tamrm"), comps.get("pbrs")
+        if exp_name == "cartpole":
+            ms = res["metrics"]
+            solved = {a: int(sum(m["solved"] for m in v)) for a, v in ms.items() if v}
+            n = {a: len(v) for a, v in ms.items() if v}
+            out.append(
+                (
+                    f"{title}: TAMRM solves (paper: episode 455) while plain A2C does not "
+                    f"(we: TAMRM {solved.get('tamrm', 0)}/{n.get('tamrm', 0)} seeds, plain "
+                    f"{solved.get('plain', 0)}/{n.get('plain', 0)})",
+                    "reproduced"
+                    if solved.get("tamrm", 0) > 0 and solved.get("plain", 0) == 0
+                    else (
+                        "contradicted"
+                        if solved.get("plain", 0) >= solved.get("tamrm", 0)
+                        and solved.get("plain", 0) > 0
+                        else "undecided"
+                    ),
+                )
+            )
+        if tam is not None:
+            what = {
+                "cartpole": "TAMRM learns faster than plain A2C (mean steps per episode)",
+                "mountaincar": "TAMRM needs fewer steps than plain DQN",
+                "maze": "TAMRM needs fewer steps than plain DQN",
+                "maze_modified": "after the start moves, TAMRM (fresh pool) needs fewer "
+                "steps than plain DQN",
+            }[exp_name]
+            out.append((f"{title}: {what}", cat(tam.better, True)))
+        if pbrs is not None and exp_name in ("cartpole", "mountaincar", "maze"):
+            out.append(
+                (
+                    f"{title}: PBRS alone does not help (is worse than plain)",
+                    cat(pbrs.better, False),
+                )
+            )
+    return out
+
+
+def _closing(results: dict[str, dict[str, Any]], n_seeds: int) -> list[str]:
+    claims = _claims(results)
+    lines = ["## Closing note: agreement with the paper", ""]
+    for label, key in (
+        ("Agrees with the paper", "reproduced"),
+        ("Disagrees with the paper", "contradicted"),
+        ("Not decided by our data (no difference detectable at 95%)", "undecided"),
+    ):
+        items = [c for c, v in claims if v == key]
+        lines.append(f"**{label}**" + (":" if items else ": none."))
+        lines += [f"- {c}" for c in items]
+        lines.append("")
+    # The ablation: which term carries the effect?
+    abl = []
+    for exp_name, res in results.items():
+        if not res:
+            continue
+        comps = res["comparisons"]
+        words = {
+            arm: {True: "better", False: "worse", None: "no different"}[comps[arm].better]
+            for arm in ("knn", "pbrs", "tamrm")
+            if arm in comps
+        }
+        if words:
+            title = EXPERIMENTS[exp_name].title.split(" (")[0]
+            abl.append(
+                f"- {title}: kNN only {words.get('knn', '?')}, PBRS only "
+                f"{words.get('pbrs', '?')}, both {words.get('tamrm', '?')} than plain."
+            )
+    lines += ["**Ablation (which term does the work)**:", *abl, ""]
+    lines += [
+        "Caveats: budgets are reduced as stated above; the learners are SB3's, not the "
+        f"authors'; {n_seeds} seed(s) per arm give wide intervals, so 'not decided' means "
+        "the effect, if any, "
+        "is smaller than what these seeds can resolve, not that there is none.",
+        "",
+    ]
+    return lines
+
+
 def _answer(results: dict[str, dict[str, Any]], runs: list[Run]) -> list[str]:
     """The headline: per arm, in how many experiments it beat plain, lost, or tied."""
     lines = []
@@ -594,7 +687,9 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
     lines += sections
 
     # How it was run.
-    invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
+    all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
+    invs = [i for i in all_invs if not i.get("interrupted")]
+    interrupted = [i for i in all_invs if i.get("interrupted")]
     wall = sum(float(i.get("wall_time_s", 0)) for i in invs)
     run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
     total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
@@ -606,22 +701,52 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         "",
         f"- Profile(s): {', '.join(profiles)}; seeds {seeds[0]}..{seeds[-1]} "
         f"({len(seeds)}); {len(runs)} finished runs.",
-        "- Command(s) (from the repository root, resumable; finished runs are skipped):",
+        "- The one command: `experiments/reproduce.sh` (from the repository root; it runs "
+        "the grid, then this report). The grid invocation(s) it made (resumable; finished "
+        "runs are skipped):",
         "",
         *[f"      {c}" for c in commands],
         "",
         f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
         f"- Wall time of the run invocations: {wall / 60:.1f} min "
         f"({len(invs)} invocation(s)); sum of per-run wall times {run_wall / 60:.1f} min; "
-        f"{total_steps:,} environment steps, each one gRPC round trip.",
+        f"{total_steps:,} environment steps, each one gRPC round trip."
+        + (
+            f" ({len(interrupted)} interrupted invocation(s), "
+            f"{sum(float(i.get('wall_time_s', 0)) for i in interrupted) / 60:.1f} min, not "
+            "counted: their unfinished runs were redone.)"
+            if interrupted
+            else ""
+        ),
         "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
     ]
+    lines += [
+        "",
+        "Throughput (each step is one shaping round trip; the machine has "
+        f"{vers.get('cpu_count', '?')} cores, shared with other work during part of the run):",
+        "",
+        "| experiment | runs | environment steps | sum of run wall times | steps/s per run |",
+        "|---|---|---|---|---|",
+    ]
+    for exp_name, exp in EXPERIMENTS.items():
+        rs = [r for r in runs if r.experiment == exp_name]
+        if not rs:
+            continue
+        steps = sum(int(r.meta.get("total_steps", 0)) for r in rs)
+        secs = sum(float(r.meta.get("wall_time_s", 0)) for r in rs)
+        rate = t_interval([float(r.meta.get("steps_per_s") or math.nan) for r in rs])
+        lines.append(
+            f"| {exp.title} | {len(rs)} | {steps:,} | {secs / 60:.1f} min | "
+            f"{_fmt_interval(rate, '{:,.0f}')} |"
+        )
+    lines.append("")
     if len(diff_versions) > 1:
         n_sets = len(diff_versions)
         lines.append(f"- Note: the runs were made with {n_sets} different version sets.")
     lines += ["", "## Deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
     lines += [""]
+    lines += _closing(results, len(seeds))
     out.write_text("\n".join(lines))
 
 

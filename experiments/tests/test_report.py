@@ -1,0 +1,77 @@
+import csv
+import json
+
+from tamrm_experiments.configs import ARMS, make_specs
+from tamrm_experiments.report import load_runs, run_metrics, write_report
+from tamrm_experiments.run import CSV_FIELDS, run_paths
+from tamrm_experiments.stats import t_interval
+
+
+def _write_run(out, spec, steps):
+    csv_path, _, meta_path = run_paths(out, spec)
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        total = 0
+        for i, n in enumerate(steps, 1):
+            total += n
+            w.writerow(
+                {
+                    "episode": i,
+                    "steps": n,
+                    "env_return": 1.0,
+                    "shaped_return": 1.5,
+                    "knn_sum": 0.1,
+                    "potential_sum": 0.2,
+                    "knn_active_steps": 1,
+                    "terminated": 1,
+                    "truncated": 0,
+                    "success": 1,
+                    "score": 100 / n,
+                    "task_phase": 0,
+                    "pool_version": i,
+                    "total_steps": total,
+                    "wall_time": i * 0.1,
+                }
+            )
+    meta = {
+        "spec": spec.to_dict(),
+        "complete": True,
+        "episodes": len(steps),
+        "total_steps": sum(steps),
+        "censored": False,
+        "wall_time_s": 1.0,
+        "steps_per_s": float(sum(steps)),
+        "versions": {"cpu_count": "2"},
+    }
+    meta_path.write_text(json.dumps(meta))
+
+
+def test_report_tables_from_synthetic_runs(tmp_path):
+    runs = tmp_path / "runs"
+    totals = {}
+    for spec in make_specs("quick", seeds=3, experiments=["maze"]):
+        # TAMRM clearly needs fewer steps than plain; the others are in between.
+        base = {"plain": 100, "pbrs": 90, "knn": 80, "tamrm": 20}[spec.arm] + spec.seed
+        steps = [base] * spec.budget.episodes
+        totals.setdefault(spec.arm, []).append(sum(steps))
+        _write_run(runs, spec, steps)
+    loaded = load_runs(runs)
+    assert len(loaded) == 12
+    assert {run_metrics(r)["total_steps"] for r in loaded if r.arm == "tamrm"} == set(
+        map(float, totals["tamrm"])
+    )
+    out = tmp_path / "docs" / "reproduction.md"
+    write_report(runs, out, tmp_path / "docs" / "reproduction")
+    text = out.read_text()
+    assert (tmp_path / "docs" / "reproduction" / "maze.png").is_file()
+    iv = t_interval(totals["tamrm"])
+    assert f"{iv.mean:,.0f} [{iv.low:,.0f}, {iv.high:,.0f}]" in text
+    assert "![Maze (DQN)](reproduction/maze.png)" in text
+    assert "TAMRM needs fewer steps than plain DQN" in text
+    closing = text.split("## Closing note")[1]
+    agrees = closing.split("**Disagrees")[0]
+    assert "Maze: TAMRM needs fewer steps than plain DQN" in agrees
+    for arm in ARMS.values():
+        assert arm.label in text
