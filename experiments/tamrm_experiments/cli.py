@@ -12,6 +12,9 @@ from tamrm_experiments.configs import ARMS, EXPERIMENTS, PROFILES, make_specs
 
 __all__ = ["main"]
 
+#: ``experiments/`` of the repository (defaults do not depend on the working directory).
+EXPERIMENTS_DIR = Path(__file__).resolve().parents[1]
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -29,7 +32,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: all cores)"
     )
-    run.add_argument("--out", type=Path, help="runs directory (default experiments/runs[-quick])")
+    run.add_argument(
+        "--out", type=Path, help="runs directory (default experiments/runs, or runs-quick)"
+    )
     run.add_argument("--experiments", nargs="+", choices=sorted(EXPERIMENTS), help="subset")
     run.add_argument("--arms", nargs="+", choices=list(ARMS), help="subset of arms")
     run.add_argument("--address", help="use a running server instead of starting one")
@@ -37,8 +42,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--dry-run", action="store_true", help="list the runs to do and exit")
 
     rep = sub.add_parser("report", help="write the reproduction report from the raw runs")
-    rep.add_argument("--runs", type=Path, default=Path("experiments/runs"))
-    rep.add_argument("--out", type=Path, default=Path("docs/reproduction.md"))
+    rep.add_argument("--runs", type=Path, default=EXPERIMENTS_DIR / "runs")
+    rep.add_argument("--out", type=Path, default=EXPERIMENTS_DIR.parent / "docs/reproduction.md")
     rep.add_argument(
         "--plots", type=Path, help="plots directory (default: the --out path without .md)"
     )
@@ -52,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
         from tamrm_experiments.run import is_complete, run_grid
 
         profile = args.profile or ("quick" if args.quick else "full")
-        default_out = "experiments/runs-quick" if profile == "quick" else "experiments/runs"
-        out = args.out or Path(default_out)
+        default_out = "runs-quick" if profile == "quick" else "runs"
+        out = args.out or EXPERIMENTS_DIR / default_out
         specs = make_specs(profile, args.seeds, args.experiments, args.arms)
         if args.dry_run:
             for spec in specs:

@@ -188,10 +188,10 @@ PROFILES: dict[str, Profile] = {
         seeds=5,
         budgets={
             "cartpole": Budget(episodes=500, max_episode_steps=200, max_total_steps=100_000),
-            "mountaincar": Budget(episodes=60, max_episode_steps=10_000, max_total_steps=100_000),
-            "maze": Budget(episodes=100, max_episode_steps=10_000, max_total_steps=100_000),
+            "mountaincar": Budget(episodes=30, max_episode_steps=10_000, max_total_steps=50_000),
+            "maze": Budget(episodes=50, max_episode_steps=10_000, max_total_steps=50_000),
             "maze_modified": Budget(
-                episodes=100, max_episode_steps=10_000, max_total_steps=100_000, switch_after=50
+                episodes=50, max_episode_steps=10_000, max_total_steps=50_000, switch_after=25
             ),
         },
     ),
