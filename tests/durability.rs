@@ -304,8 +304,17 @@ async fn populate(c: &mut Client) -> Vec<(String, u64)> {
     })
     .await
     .unwrap();
+    // Ids that differ only in characters a directory name cannot hold, and the longest id.
+    let long = format!("{}:/.-_", "L".repeat(123));
+    for (i, id) in ["x/y", "x:y", long.as_str()].iter().enumerate() {
+        create(c, id, discrete(3, 2, 2, 0, 1)).await;
+        add(c, id, dtraj(&[i as u32], i as f64)).await;
+    }
     wait_open_streams(c, "d", 0).await;
     vec![
+        ("x/y".into(), 1),
+        ("x:y".into(), 1),
+        (long, 1),
         ("d".into(), inserts),
         ("c/1:x".into(), 3),
         ("empty".into(), 0),
@@ -344,7 +353,7 @@ async fn in_process_restart_restores_everything() {
     let mut c = connect(server.addr()).await;
     let assigned = populate(&mut c).await;
     let (tasks, pools) = snapshot(&mut c).await;
-    assert_eq!(tasks.len(), 4);
+    assert_eq!(tasks.len(), 7);
     server.shutdown().await;
 
     let server = start_server(Some(dir.path()), |_| {}).await;
