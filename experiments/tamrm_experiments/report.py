@@ -616,7 +616,15 @@ DEVIATIONS = [
     "fixed at 0.1 as the paper's \"epsilon 0.1\"). The server's gamma for the potential term "
     "equals the learner's gamma in every experiment.",
     'The kNN start threshold N (paper: "N > 0", no value) is the service default, 10; '
-    "min_pool_size is the pool capacity (the kNN term starts once the pool is full).",
+    "min_pool_size is the pool capacity (the service default): the kNN term starts once the "
+    "pool is full, i.e. from episode "
+    + ", ".join(
+        f"{e.tamrm['pool_capacity'] + 1} ({e.title.split(' (')[0].lower()})"
+        for e in EXPERIMENTS.values()
+        if e.switch_after is None
+    )
+    + ", and again 11 episodes after the switch in the modified maze (fresh pool). Before "
+    "that, kNN only equals plain and TAMRM equals PBRS only, step for step (same seeds).",
     "Cart pole: `CartPole-v0` of gymnasium (200-step episodes, pole limit 12 degrees; the "
     "paper's text says 15). The training reward is +1 per step and -1 on the step that "
     "fails; the truncation at 200 steps is not a failure. The metric is steps kept up.",
