@@ -1,6 +1,8 @@
 //! Assembles and runs the gRPC server: Shaping, grpc.health.v1 and server reflection,
 //! with graceful shutdown.
 
+mod linger;
+
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -8,6 +10,7 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 use tonic::transport::Server;
 
 use crate::proto::shaping_server::ShapingServer;
@@ -43,6 +46,7 @@ pub struct RunningServer {
     grace: Duration,
     registry: Arc<Registry>,
     serve: JoinHandle<Result<(), tonic::transport::Error>>,
+    closing: TaskTracker,
 }
 
 impl RunningServer {
@@ -68,6 +72,10 @@ impl RunningServer {
                 tracing::warn!(grace = ?self.grace, "connections still open after the grace period; exiting anyway")
             }
         }
+        // Closed connections drain what their clients still send, so the last answers
+        // are not destroyed by a TCP reset (see `linger`).
+        self.closing.close();
+        let _ = tokio::time::timeout(linger::LINGER, self.closing.wait()).await;
         let registry = self.registry.clone();
         let flush = move || registry.flush_counters();
         if let Err(e) = tokio::task::spawn_blocking(flush).await {
@@ -126,6 +134,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
 
     let stop = shutdown.clone();
     let reporter = health_reporter.clone();
+    let closing = TaskTracker::new();
+    let tracker = closing.clone();
     let router = Server::builder()
         .layer(tower::util::MapResponseLayer::new(
             size_limit_to_resource_exhausted,
@@ -142,11 +152,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
                 .await;
         };
         router
-            .serve_with_incoming_shutdown(
-                // Small frames (one batch per env step) must not wait for delayed ACKs.
-                tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-                signal,
-            )
+            .serve_with_incoming_shutdown(linger::incoming(listener, tracker), signal)
             .await
     });
     tracing::info!("listening on {addr}");
@@ -162,6 +168,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         grace: Duration::from_secs(settings.shutdown_grace_secs),
         registry,
         serve,
+        closing,
     })
 }
 
