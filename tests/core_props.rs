@@ -1222,7 +1222,6 @@ fn a_continuous_prefix_at_equal_distances() {
 /// by AddTrajectory and by the §6 rule) the engine computes S_max − S_min = +inf and
 /// x_best = inf/inf = NaN, so every active step of the task returns NaN rewards.
 #[test]
-#[ignore = "known bug in Pool::recompute: S_max − S_min overflows to inf (x = NaN)"]
 fn normalised_scores_do_not_overflow() {
     let cfg = dcfg(2, 2, 2, 0, 2);
     let pool = pool_of(2, &[(&[0, 0], 1e308), (&[1, 1], -1e308)]);
@@ -1237,7 +1236,6 @@ fn normalised_scores_do_not_overflow() {
 /// `Pool::restore` rejects non-finite scores, so such a pool cannot be reloaded), and every
 /// later active step gets x = (inf − S_min)/(inf − S_min) = NaN, i.e. NaN rewards.
 #[test]
-#[ignore = "known gap: an overflowing Σ R gives a non-finite episode score that the pool accepts"]
 fn an_overflowing_reward_sum_never_poisons_the_pool() {
     let cfg = dcfg(2, 2, 2, 0, 1);
     let mut pool = pool_of(2, &[(&[0, 0], 0.0)]);

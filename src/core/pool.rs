@@ -114,8 +114,12 @@ impl Pool {
             .map(|t| {
                 if hi == lo {
                     1.0
-                } else {
+                } else if (hi - lo).is_finite() {
                     (t.score - lo) / (hi - lo)
+                } else {
+                    // Finite scores whose range overflows f64 (e.g. ±1e308): the same
+                    // ratio, halved to stay finite.
+                    (t.score * 0.5 - lo * 0.5) / (hi * 0.5 - lo * 0.5)
                 }
             })
             .collect();
@@ -124,7 +128,13 @@ impl Pool {
     /// The change that offering an episode with these actions and this score would make:
     /// insert while not full, else replace the lowest score (lowest seq among equals) if
     /// `score` is strictly greater, else `None` (discarded). The actions must be non-empty.
+    ///
+    /// A non-finite score (only possible as an overflowing sum of finite rewards) is
+    /// discarded: normalised scores would be undefined.
     pub fn plan_offer(&self, actions: ActionSeq, score: f64) -> Option<PoolChange> {
+        if !score.is_finite() {
+            return None;
+        }
         let replaces = if self.trajectories.len() < self.capacity {
             None
         } else {
