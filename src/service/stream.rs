@@ -107,9 +107,12 @@ async fn serve(
             Err(end) => return end,
         };
         outputs.clear();
+        // Only an episode end can make the batch write to disk.
+        let may_write =
+            durable && (batch.terminated.iter().any(|&d| d) || batch.truncated.iter().any(|&d| d));
         let result =
             step_entries(&batch, task.config(), num_envs, registry.limits()).and_then(|entries| {
-                super::blocking(durable, || {
+                super::blocking(may_write, || {
                     task.shape_batch(&mut episodes, &entries, &mut scratch, &mut outputs)
                 })
             });
