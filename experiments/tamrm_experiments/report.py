@@ -145,11 +145,16 @@ def run_metrics(run: Run) -> dict[str, float]:
         out["solved_ep"] = float(solved) if solved is not None else math.nan
         out["mean_steps"] = float(steps.mean()) if len(steps) else math.nan
         out["last100"] = float(steps[-100:].mean()) if len(steps) else math.nan
+    # A run stopped by its step cap has an unfinished last episode: its steps count in the
+    # totals (which are then lower bounds), in the phase it belongs to.
+    unfinished = max(0.0, float(run.meta.get("total_steps", 0)) - out["total_steps"])
+    out["total_steps"] += unfinished
     if run.experiment == "maze_modified":
         switch = run.budget.get("switch_after") or 0
         phase2 = df[df["episode"] > switch]["steps"].to_numpy(dtype=np.float64)
         out["phase1_steps"] = float(df[df["episode"] <= switch]["steps"].sum())
         out["phase2_steps"] = float(phase2.sum())
+        out["phase2_steps" if len(df) >= switch else "phase1_steps"] += unfinished
         out["phase2_last50"] = float(phase2[-50:].mean()) if len(phase2) else math.nan
     return out
 
@@ -298,6 +303,30 @@ def _budget_line(exp_name: str, runs: list[Run]) -> str:
     return "; ".join(parts)
 
 
+#: Totals that a run stopped by its step cap only bounds from below.
+CENSORABLE = ("total_steps", "phase1_steps", "phase2_steps")
+
+
+def _censoring_caveat(comp: Comparison, arm_censored: bool, plain_censored: bool) -> Comparison:
+    """Keep a verdict only if censoring (totals that are lower bounds) cannot reverse it."""
+    # A censored total understates the true one. If only plain is censored, "arm better"
+    # stands (plain's true total is even larger); if only the arm is, "arm worse" stands.
+    safe = (plain_censored and not arm_censored and comp.better is True) or (
+        arm_censored and not plain_censored and comp.better is False
+    )
+    if safe:
+        comp.text += " (some totals are lower bounds; they can only widen this gap)"
+    elif comp.better is None:
+        comp.text += " (some totals are lower bounds)"
+    else:
+        comp.better = None
+        comp.text += (
+            " - but some totals are lower bounds (runs stopped by the step cap), so this "
+            "is counted as undecided"
+        )
+    return comp
+
+
 def _experiment_section(
     exp_name: str, runs: list[Run], plots_rel: str, plots_dir: Path
 ) -> tuple[list[str], dict[str, Any]]:
@@ -319,6 +348,9 @@ def _experiment_section(
     else:
         head.append("seeds stopped by the step cap")
     head += [m.label for m in mlist]
+    any_censored = any(censored.values())
+    if any_censored:
+        head.append("episodes done")
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
     for arm in ARMS:
@@ -333,9 +365,11 @@ def _experiment_section(
         for m in mlist:
             iv = t_interval([x[m.key] for x in ms])
             cell = _fmt_interval(iv, m.fmt)
-            if censored[arm] and m.key in ("total_steps", "phase2_steps", "phase1_steps"):
+            if censored[arm] and m.key in CENSORABLE:
                 cell = "≥ " + cell
             row.append(cell)
+        if any_censored:
+            row.append(_fmt_interval(t_interval([x["episodes"] for x in ms]), "{:,.1f}"))
         lines.append("| " + " | ".join(row) + " |")
     lines.append("")
     lines.append(
@@ -358,6 +392,8 @@ def _experiment_section(
             if arm == "plain" or not metrics[arm]:
                 continue
             comp = compare(head_metric, [m[head_metric.key] for m in metrics[arm]], plain, arm)
+            if head_metric.key in CENSORABLE and (censored[arm] or censored["plain"]):
+                comp = _censoring_caveat(comp, bool(censored[arm]), bool(censored["plain"]))
             comps[arm] = comp
             lines.append(f"- {ARMS[arm].label}: {comp.text}")
         lines.append("")
