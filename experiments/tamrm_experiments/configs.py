@@ -190,9 +190,9 @@ PROFILES: dict[str, Profile] = {
             "cartpole": Budget(episodes=500, max_episode_steps=200, max_total_steps=100_000),
             # 60 episodes: the kNN term starts once the pool of 20 is full (episode 21).
             "mountaincar": Budget(episodes=60, max_episode_steps=10_000, max_total_steps=70_000),
-            "maze": Budget(episodes=50, max_episode_steps=10_000, max_total_steps=50_000),
+            "maze": Budget(episodes=50, max_episode_steps=10_000, max_total_steps=100_000),
             "maze_modified": Budget(
-                episodes=50, max_episode_steps=10_000, max_total_steps=50_000, switch_after=25
+                episodes=50, max_episode_steps=10_000, max_total_steps=100_000, switch_after=25
             ),
         },
     ),
