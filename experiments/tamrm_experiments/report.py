@@ -80,16 +80,16 @@ METRICS: dict[str, list[Metric]] = {
     ],
     "mountaincar": [
         Metric("total_steps", "total steps", True),
-        Metric("last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+        Metric("last20", "mean steps per episode, last 20 episodes", True, "{:,.1f}"),
     ],
     "maze": [
         Metric("total_steps", "total steps", True),
-        Metric("last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+        Metric("last20", "mean steps per episode, last 20 episodes", True, "{:,.1f}"),
     ],
     "maze_modified": [
         Metric("phase2_steps", "total steps after the switch", True),
         Metric("phase1_steps", "total steps before the switch", True),
-        Metric("phase2_last50", "mean steps per episode, last 50 episodes", True, "{:,.1f}"),
+        Metric("phase2_last10", "mean steps per episode, last 10 episodes", True, "{:,.1f}"),
     ],
 }
 
@@ -136,7 +136,7 @@ def run_metrics(run: Run) -> dict[str, float]:
     out: dict[str, float] = {
         "episodes": float(len(df)),
         "total_steps": float(steps.sum()),
-        "last50": float(steps[-50:].mean()) if len(steps) else math.nan,
+        "last20": float(steps[-20:].mean()) if len(steps) else math.nan,
         "successes": float(df["success"].sum()) if len(df) else 0.0,
     }
     if run.experiment == "cartpole":
@@ -155,7 +155,7 @@ def run_metrics(run: Run) -> dict[str, float]:
         out["phase1_steps"] = float(df[df["episode"] <= switch]["steps"].sum())
         out["phase2_steps"] = float(phase2.sum())
         out["phase2_steps" if len(df) >= switch else "phase1_steps"] += unfinished
-        out["phase2_last50"] = float(phase2[-50:].mean()) if len(phase2) else math.nan
+        out["phase2_last10"] = float(phase2[-10:].mean()) if len(phase2) else math.nan
     return out
 
 
