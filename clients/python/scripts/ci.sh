@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# CI for the Python client (clients/python). Idempotent; safe to run repeatedly.
+#
+#   bash clients/python/scripts/ci.sh
+#
+# - creates (or reuses) the virtualenv $TAMRM_VENV (default: <repo>/.venv),
+# - installs the client with its [dev,sb3] extras (editable),
+# - runs ruff check, ruff format --check, mypy (src/tamrm, strict, generated stubs excluded),
+# - runs pytest on clients/python/tests against the real server binary
+#   $TAMRM_BIN (default: <repo>/target/release/tamrm).
+#
+# It does NOT build the Rust binary: run `cargo build --release` first.
+set -euo pipefail
+
+CLIENT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+REPO_ROOT="$(cd "$CLIENT_DIR/../.." && pwd)"
+VENV="${TAMRM_VENV:-$REPO_ROOT/.venv}"
+export TAMRM_BIN="${TAMRM_BIN:-$REPO_ROOT/target/release/tamrm}"
+PYTHON="${PYTHON:-python3}"
+
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+export PYTHONDONTWRITEBYTECODE=1
+
+step() { printf '\n=== %s ===\n' "$*"; }
+
+if [[ ! -x "$TAMRM_BIN" ]]; then
+    echo "ci.sh: server binary not found at TAMRM_BIN=$TAMRM_BIN" >&2
+    echo "ci.sh: build it first: (cd $REPO_ROOT && cargo build --release)" >&2
+    exit 1
+fi
+
+step "virtualenv $VENV"
+if [[ ! -x "$VENV/bin/python" ]]; then
+    "$PYTHON" -m venv "$VENV"
+fi
+"$VENV/bin/python" --version
+
+step "pip install -e clients/python[dev,sb3]"
+"$VENV/bin/python" -m pip install -q --upgrade pip
+"$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3]"
+
+cd "$CLIENT_DIR"
+
+step "ruff check"
+"$VENV/bin/ruff" check .
+
+step "ruff format --check"
+"$VENV/bin/ruff" format --check .
+
+step "mypy (strict, src/tamrm)"
+"$VENV/bin/mypy"
+
+step "pytest (server: $TAMRM_BIN)"
+"$VENV/bin/python" -m pytest tests -q -p no:cacheprovider

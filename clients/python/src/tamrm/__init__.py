@@ -1,0 +1,94 @@
+"""Python client of tamrm, the trajectory action meta-reward model (TAMRM) shaping service.
+
+The server keeps, per task, a pool of the best past episodes and shapes every
+environment reward into ``R_meta = R + alpha * r(t) + beta * F``: ``r(t)`` rewards an
+episode whose action prefix resembles the best stored episodes (k nearest neighbours),
+``F = gamma * V(s') - V(s)`` is a potential term from the learner's own value estimates.
+
+Main entry points:
+
+- :class:`Client` (and :mod:`tamrm.aio` for asyncio): task management and sessions.
+- :meth:`Client.session` -> :class:`Session`: one stream, one round trip per vector step.
+- :mod:`tamrm.gym`: ``ShapedReward`` / ``VectorShapedReward`` gymnasium wrappers.
+- :mod:`tamrm.sb3`: ``ShapedVecEnv`` for Stable-Baselines3 (extra ``tamrm[sb3]``).
+- :func:`local_server`: run a ``tamrm`` binary on a free port for tests and examples.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from tamrm._client import DEFAULT_TIMEOUT, Client
+from tamrm._errors import (
+    AlreadyExists,
+    DeadlineExceeded,
+    FailedPrecondition,
+    InvalidArgument,
+    ResourceExhausted,
+    SessionClosed,
+    TamrmError,
+    TaskNotFound,
+    Unavailable,
+)
+from tamrm._server import LocalServer, ServerStartError, find_binary, local_server
+from tamrm._session import Session
+from tamrm._types import (
+    CONFIG_FIELDS,
+    AddTrajectoryResult,
+    Pool,
+    StepResult,
+    Task,
+    TaskConfig,
+    TaskStats,
+    Trajectory,
+)
+
+if TYPE_CHECKING:
+    import tamrm.aio as aio
+    import tamrm.gym as gym
+    import tamrm.sb3 as sb3
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CONFIG_FIELDS",
+    "DEFAULT_TIMEOUT",
+    "AddTrajectoryResult",
+    "AlreadyExists",
+    "Client",
+    "DeadlineExceeded",
+    "FailedPrecondition",
+    "InvalidArgument",
+    "LocalServer",
+    "Pool",
+    "ResourceExhausted",
+    "ServerStartError",
+    "Session",
+    "SessionClosed",
+    "StepResult",
+    "TamrmError",
+    "Task",
+    "TaskConfig",
+    "TaskNotFound",
+    "TaskStats",
+    "Trajectory",
+    "Unavailable",
+    "__version__",
+    "aio",
+    "find_binary",
+    "gym",
+    "local_server",
+    "sb3",
+]
+
+_LAZY = {"aio", "gym", "sb3"}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the optional submodules (``aio``, ``gym``, ``sb3``) on first use."""
+    if name in _LAZY:
+        module = importlib.import_module(f"tamrm.{name}")
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module 'tamrm' has no attribute {name!r}")

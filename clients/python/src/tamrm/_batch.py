@@ -1,0 +1,218 @@
+"""Validation of a session step's arrays and their conversion to a columnar ``StepBatch``.
+
+Everything here runs before a request is sent: a wrong shape or dtype raises a
+``ValueError``/``TypeError`` naming the argument and nothing reaches the server. Value
+checks the server makes anyway (finiteness of rewards and values, scores on entries that
+do not end an episode when given as a mapping) are left to the server, whose
+``INVALID_ARGUMENT`` is raised as :class:`tamrm.InvalidArgument`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
+from tamrm._types import TaskConfig
+
+__all__ = ["PreparedBatch", "prepare_batch", "prepare_trajectory"]
+
+_UINT32_MAX = 2**32 - 1
+
+
+@dataclass(frozen=True)
+class PreparedBatch:
+    """A validated step: the request to send and what the session needs to track."""
+
+    request: pb.ShapeRequest
+    env_ids: npt.NDArray[np.int64]
+    done: npt.NDArray[np.bool_]
+
+    @property
+    def size(self) -> int:
+        """Number of entries B."""
+        return int(self.env_ids.shape[0])
+
+
+def _array(name: str, value: Any) -> npt.NDArray[Any]:
+    if value is None:
+        raise TypeError(f"{name} must be an array, got None")
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"{name} could not be converted to an array: {exc}") from exc
+    return arr
+
+
+def _check_shape(name: str, arr: npt.NDArray[Any], shape: tuple[int, ...]) -> None:
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+
+
+def _real(name: str, value: Any, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
+    arr = _array(name, value)
+    if arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must hold real numbers (int or float), got dtype {arr.dtype}")
+    _check_shape(name, arr, shape)
+    return arr.astype(np.float64, copy=False)
+
+
+def _flags(name: str, value: Any, size: int) -> npt.NDArray[np.bool_]:
+    if value is None:
+        return np.zeros(size, dtype=np.bool_)
+    arr = _array(name, value)
+    if arr.dtype.kind == "b":
+        pass
+    elif arr.dtype.kind in "iu":
+        if arr.size and not np.isin(arr, (0, 1)).all():
+            raise ValueError(f"{name} must hold booleans (or 0/1 integers)")
+    else:
+        raise TypeError(f"{name} must hold booleans, got dtype {arr.dtype}")
+    _check_shape(name, arr, (size,))
+    return arr.astype(np.bool_, copy=False)
+
+
+def _discrete_actions(name: str, value: Any, size: int, num_actions: int) -> npt.NDArray[np.int64]:
+    arr = _array(name, value)
+    if arr.dtype.kind not in "iu":
+        raise TypeError(
+            f"{name} must hold integer actions for a discrete task, got dtype {arr.dtype}"
+        )
+    _check_shape(name, arr, (size,))
+    if arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        if lo < 0 or hi >= num_actions:
+            bad = lo if lo < 0 else hi
+            raise ValueError(f"{name} must be in 0..{num_actions - 1}, got {bad}")
+    return arr.astype(np.int64, copy=False)
+
+
+def _vector_actions(name: str, value: Any, size: int, action_dim: int) -> npt.NDArray[np.float32]:
+    arr = _array(name, value)
+    if arr.dtype.kind not in "iuf":
+        raise TypeError(
+            f"{name} must hold real action vectors for a continuous task, got dtype {arr.dtype}"
+        )
+    _check_shape(name, arr, (size, action_dim))
+    return arr.astype(np.float32, copy=False)
+
+
+def prepare_batch(
+    config: TaskConfig,
+    num_envs: int,
+    actions: Any,
+    rewards: Any,
+    terminated: Any = None,
+    truncated: Any = None,
+    *,
+    values: Any = None,
+    next_values: Any = None,
+    q_values: Any = None,
+    next_q_values: Any = None,
+    episode_scores: Any = None,
+    env_ids: Any = None,
+) -> PreparedBatch:
+    """Validate one step's arrays and build its ``ShapeRequest``.
+
+    See :meth:`tamrm.Session.step` for the meaning of the arguments.
+
+    Raises:
+        TypeError: An argument has the wrong dtype, or only one of a pair was given.
+        ValueError: An argument has the wrong shape or an out-of-range entry.
+    """
+    if env_ids is None:
+        size = num_envs
+        ids = np.arange(num_envs, dtype=np.int64)
+        send_ids: list[int] = []
+    else:
+        arr = _array("env_ids", env_ids)
+        if arr.dtype.kind not in "iu":
+            raise TypeError(f"env_ids must hold integers, got dtype {arr.dtype}")
+        if arr.ndim != 1:
+            raise ValueError(f"env_ids must be one-dimensional, got shape {arr.shape}")
+        ids = arr.astype(np.int64, copy=False)
+        if ids.size and (int(ids.min()) < 0 or int(ids.max()) >= num_envs):
+            raise ValueError(f"env_ids must be in 0..{num_envs - 1}")
+        size = int(ids.shape[0])
+        send_ids = ids.tolist()
+
+    rew = _real("rewards", rewards, (size,))
+    term = _flags("terminated", terminated, size)
+    trunc = _flags("truncated", truncated, size)
+    done = term | trunc
+
+    batch = pb.StepBatch(env_ids=send_ids, rewards=rew.tolist())
+    if terminated is not None and term.any():
+        batch.terminated.extend(term.tolist())
+    if truncated is not None and trunc.any():
+        batch.truncated.extend(trunc.tolist())
+
+    if config.discrete:
+        batch.actions.extend(
+            _discrete_actions("actions", actions, size, config.num_actions).tolist()
+        )
+    else:
+        batch.action_vectors.extend(
+            _vector_actions("actions", actions, size, config.action_dim).ravel().tolist()
+        )
+
+    if (values is None) != (next_values is None):
+        raise TypeError("values and next_values must be given together")
+    if (q_values is None) != (next_q_values is None):
+        raise TypeError("q_values and next_q_values must be given together")
+    if values is not None and q_values is not None:
+        raise TypeError("give either values/next_values or q_values/next_q_values, not both")
+    if values is not None:
+        batch.values.extend(_real("values", values, (size,)).tolist())
+        batch.next_values.extend(_real("next_values", next_values, (size,)).tolist())
+    if q_values is not None:
+        if not config.discrete:
+            raise ValueError("q_values are only accepted by discrete tasks (num_actions > 0)")
+        shape = (size, config.num_actions)
+        batch.q_values.extend(_real("q_values", q_values, shape).ravel().tolist())
+        batch.next_q_values.extend(_real("next_q_values", next_q_values, shape).ravel().tolist())
+
+    if episode_scores is not None:
+        if isinstance(episode_scores, Mapping):
+            scores: dict[int, float] = {}
+            for key, score in episode_scores.items():
+                if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
+                    raise TypeError("episode_scores keys must be row indices (int)")
+                if not 0 <= int(key) < size:
+                    raise ValueError(f"episode_scores key {key} is not a row index < {size}")
+                scores[int(key)] = float(score)
+        else:
+            sc = _real("episode_scores", episode_scores, (size,))
+            rows = np.flatnonzero(done & ~np.isnan(sc))
+            scores = dict(zip(rows.tolist(), sc[rows].tolist(), strict=True))
+        for key, score in scores.items():
+            batch.episode_scores[key] = score
+
+    return PreparedBatch(request=pb.ShapeRequest(steps=batch), env_ids=ids, done=done)
+
+
+def prepare_trajectory(actions: Any, score: float) -> pb.Trajectory:
+    """Build a ``Trajectory`` message from an action array and a score.
+
+    A one-dimensional integer array is a discrete trajectory (``actions``); a
+    two-dimensional real array ``(L, action_dim)`` is a continuous one (``action_vectors``).
+    """
+    arr = _array("actions", actions)
+    if isinstance(score, bool) or not isinstance(score, (int, float, np.number)):
+        raise TypeError(f"score must be a float, got {type(score).__name__}")
+    if arr.ndim == 1 and arr.dtype.kind in "iu":
+        if arr.size and (int(arr.min()) < 0 or int(arr.max()) > _UINT32_MAX):
+            raise ValueError("actions must be non-negative integers")
+        return pb.Trajectory(actions=arr.astype(np.int64).tolist(), score=float(score))
+    if arr.ndim == 2 and arr.dtype.kind in "iuf":
+        return pb.Trajectory(
+            action_vectors=arr.astype(np.float32).ravel().tolist(), score=float(score)
+        )
+    raise TypeError(
+        "actions must be a 1-D integer array (discrete task) or a 2-D real array "
+        f"(L, action_dim) (continuous task), got dtype {arr.dtype} shape {arr.shape}"
+    )

@@ -1,0 +1,1 @@
+"""Generated gRPC stubs of the tamrm API (scripts/gen_protos.py)."""

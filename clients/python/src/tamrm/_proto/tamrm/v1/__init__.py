@@ -1,0 +1,1 @@
+"""Generated: proto package ``tamrm.v1``."""

@@ -1,0 +1,308 @@
+"""The synchronous shaping session: one ``Shape`` stream driving a vector of environments."""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterator, Sequence
+from types import TracebackType
+from typing import Any
+
+import grpc
+import numpy as np
+import numpy.typing as npt
+
+from tamrm._batch import prepare_batch
+from tamrm._errors import SessionClosed, TamrmError, from_rpc_error
+from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
+from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
+from tamrm._types import StepResult, Task, TaskConfig
+
+__all__ = ["Session"]
+
+_CLOSE_TIMEOUT = 10.0
+
+
+class _SessionBase:
+    """State and checks shared by the sync and asyncio sessions."""
+
+    task_id: str
+    num_envs: int
+    task: Task
+    _episode_steps: npt.NDArray[np.int64]
+    _pool_version: int
+    _closed: bool
+    _error: BaseException | None
+
+    def _init_state(self, task_id: str, num_envs: int) -> None:
+        if not isinstance(task_id, str):
+            raise TypeError(f"task_id must be a str, got {type(task_id).__name__}")
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
+            raise TypeError(f"num_envs must be an int, got {type(num_envs).__name__}")
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.task_id = task_id
+        self.num_envs = int(num_envs)
+        self._episode_steps = np.zeros(self.num_envs, dtype=np.int64)
+        self._pool_version = 0
+        self._closed = True
+        self._error = None
+
+    @property
+    def config(self) -> TaskConfig:
+        """The task's resolved configuration, as returned when the stream opened."""
+        return self.task.config
+
+    @property
+    def closed(self) -> bool:
+        """Whether the stream is closed (by :meth:`close` or by a server error)."""
+        return self._closed
+
+    @property
+    def pool_version(self) -> int:
+        """The task's pool version after the last answered batch (or at open)."""
+        return self._pool_version
+
+    @property
+    def episode_steps(self) -> npt.NDArray[np.int64]:
+        """Per environment, the steps sent so far in its current (unfinished) episode."""
+        steps: npt.NDArray[np.int64] = self._episode_steps.copy()
+        return steps
+
+    @property
+    def episodes_in_progress(self) -> npt.NDArray[np.bool_]:
+        """Per environment, whether an episode has been started and not yet ended."""
+        return np.greater(self._episode_steps, 0)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            err = SessionClosed(f"the session on task {self.task_id!r} is closed")
+            raise err from self._error
+
+    def _opened(self, resp: pb.ShapeResponse) -> None:
+        if resp.WhichOneof("kind") != "opened":
+            raise TamrmError(f"expected 'opened' as the first Shape response, got {resp}")
+        self.task = Task._from_pb(resp.opened)
+        self._pool_version = self.task.stats.pool_version
+        self._episode_steps[:] = 0
+        self._closed = False
+        self._error = None
+
+    def _shaped(
+        self, resp: pb.ShapeResponse, env_ids: npt.NDArray[np.int64], done: npt.NDArray[np.bool_]
+    ) -> StepResult:
+        if resp.WhichOneof("kind") != "shaped":
+            raise TamrmError(f"expected a 'shaped' Shape response, got {resp.WhichOneof('kind')}")
+        result = StepResult._from_pb(resp.shaped, env_ids)
+        if len(result) != env_ids.shape[0] or result.steps.shape[0] != env_ids.shape[0]:
+            raise TamrmError(
+                f"the server answered {len(result)} entries for a batch of {env_ids.shape[0]}"
+            )
+        # Rows of one env come in order, so the last assignment wins as it should.
+        self._episode_steps[env_ids] = result.steps + 1
+        self._episode_steps[env_ids[done]] = 0
+        self._pool_version = result.pool_version
+        return result
+
+
+class Session(_SessionBase):
+    """One open ``Shape`` stream shaping ``num_envs`` environments of one task.
+
+    Create it with :meth:`tamrm.Client.session` and use it as a context manager; each
+    :meth:`step` is one round trip (one ``StepBatch`` out, one ``ShapedBatch`` back) on
+    the stream, which stays open until :meth:`close`. A session is not thread-safe: use
+    one per thread (several sessions may shape on the same task at once).
+
+    Attributes:
+        task_id: The task shaped.
+        num_envs: Number of environments (rows of a full step).
+        task: The task as the server returned it when the stream opened (its ``config``
+            tells whether actions are discrete).
+    """
+
+    def __init__(
+        self,
+        stub: pb_grpc.ShapingStub,
+        task_id: str,
+        num_envs: int,
+        *,
+        metadata: Sequence[tuple[str, str]] | None = None,
+    ) -> None:
+        """Open the stream (blocking until the server answers ``Open``).
+
+        Raises:
+            TaskNotFound: The task does not exist.
+            InvalidArgument: ``num_envs`` or the task id was rejected.
+        """
+        self._init_state(task_id, num_envs)
+        self._stub = stub
+        self._metadata = tuple(metadata) if metadata else None
+        self._requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
+        self._responses: Any = None
+        self._open()
+
+    # -- stream plumbing -------------------------------------------------------------
+
+    def _open(self) -> None:
+        requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
+
+        def request_iter() -> Iterator[pb.ShapeRequest]:
+            while True:
+                item = requests.get()
+                if item is None:
+                    return
+                yield item
+
+        requests.put(pb.ShapeRequest(open=pb.Open(task_id=self.task_id, num_envs=self.num_envs)))
+        self._requests = requests
+        self._responses = self._stub.Shape(request_iter(), metadata=self._metadata)
+        first = self._receive()
+        self._opened(first)
+
+    def _receive(self) -> pb.ShapeResponse:
+        try:
+            resp: pb.ShapeResponse = next(self._responses)
+            return resp
+        except grpc.RpcError as exc:
+            err: TamrmError = from_rpc_error(exc)
+        except StopIteration:
+            err = TamrmError("the server ended the Shape stream unexpectedly")
+        self._abort(err)
+        raise err from None
+
+    def _abort(self, err: BaseException) -> None:
+        self._closed = True
+        self._error = err
+        self._requests.put(None)
+        if self._responses is not None:
+            self._responses.cancel()
+
+    # -- public API ------------------------------------------------------------------
+
+    def step(
+        self,
+        actions: Any,
+        rewards: Any,
+        terminated: Any = None,
+        truncated: Any = None,
+        *,
+        values: Any = None,
+        next_values: Any = None,
+        q_values: Any = None,
+        next_q_values: Any = None,
+        episode_scores: Any = None,
+        env_ids: Any = None,
+    ) -> StepResult:
+        """Shape one vector step: one row per environment (or per entry of ``env_ids``).
+
+        Args:
+            actions: The actions taken: integers of shape ``(B,)`` for a discrete task,
+                reals of shape ``(B, action_dim)`` for a continuous one.
+            rewards: The environment rewards R, shape ``(B,)``.
+            terminated: Booleans ``(B,)``: the step reached a terminal state (V(s') is
+                taken as 0). ``None`` means all false.
+            truncated: Booleans ``(B,)``: the step hit a time limit (the sent V(s') is
+                used). ``None`` means all false.
+            values: V(s) per row, shape ``(B,)``; give together with ``next_values``.
+            next_values: V(s') per row, shape ``(B,)`` (the real last observation's
+                value on a truncation, not the reset observation's).
+            q_values: Q(s, ·) per row, shape ``(B, num_actions)``, discrete tasks only;
+                give together with ``next_q_values``, not with ``values``.
+            next_q_values: Q(s', ·), shape ``(B, num_actions)``.
+            episode_scores: Episode scores for rows that end an episode, either as an
+                array ``(B,)`` (entries on rows that do not end an episode, and NaN
+                entries, are ignored) or as a mapping ``{row: score}``. Rows without a
+                score use the sum of the episode's environment rewards.
+            env_ids: Optional integers ``(B,)``: the environment of each row, for
+                sending a subset of the environments (e.g. skipping autoreset steps).
+                ``None`` means row i is environment i and B = ``num_envs``.
+
+        Returns:
+            The shaped rewards and their parts, one row per row sent. With ``B == 0``
+            nothing is sent and an empty result is returned.
+
+        Raises:
+            TypeError, ValueError: An argument has the wrong dtype or shape (nothing was
+                sent; the session stays usable).
+            InvalidArgument: The server rejected the batch (e.g. a non-finite reward).
+            TaskNotFound: The task was deleted.
+            SessionClosed: The session was closed or an earlier step failed.
+
+            After a server error the stream is closed; open a new session (or call
+            :meth:`restart`) to continue.
+        """
+        self._check_open()
+        prepared = prepare_batch(
+            self.task.config,
+            self.num_envs,
+            actions,
+            rewards,
+            terminated,
+            truncated,
+            values=values,
+            next_values=next_values,
+            q_values=q_values,
+            next_q_values=next_q_values,
+            episode_scores=episode_scores,
+            env_ids=env_ids,
+        )
+        if prepared.size == 0:
+            return StepResult._empty(self._pool_version)
+        self._requests.put(prepared.request)
+        resp = self._receive()
+        try:
+            return self._shaped(resp, prepared.env_ids, prepared.done)
+        except TamrmError as err:
+            self._abort(err)
+            raise
+
+    def restart(self) -> None:
+        """Close the stream and open a new one on the same task.
+
+        Episodes in progress are discarded by the server (SPEC §6: an episode whose
+        stream ends before its final step is not stored); every environment starts a
+        new episode at its next step. The wrappers call this when an environment is
+        reset in the middle of an episode.
+        """
+        self.close()
+        self._open()
+
+    def close(self) -> None:
+        """Half-close the stream and wait (briefly) for the server to end it.
+
+        Idempotent. Episodes still in progress are discarded by the server.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        self._requests.put(None)
+        responses = self._responses
+        if responses is None:
+            return
+        done = threading.Event()
+        responses.add_done_callback(lambda _call: done.set())
+        if not done.wait(_CLOSE_TIMEOUT):
+            responses.cancel()
+        self._episode_steps[:] = 0
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __del__(self) -> None:
+        # An unclosed session: end the request iterator so that the stream half-closes
+        # and gRPC's request thread exits (no blocking here; close() is the clean way).
+        requests = getattr(self, "_requests", None)
+        if requests is not None:
+            requests.put(None)
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"<tamrm.Session task_id={self.task_id!r} num_envs={self.num_envs} {state}>"

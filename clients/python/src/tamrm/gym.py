@@ -1,0 +1,314 @@
+"""gymnasium wrappers that replace the environment reward with the shaped reward.
+
+Shaping an existing gymnasium loop is a three-line change::
+
+    client = tamrm.Client("127.0.0.1:50051")
+    client.create_task("cartpole", num_actions=2)
+    env = tamrm.gym.ShapedReward(gym.make("CartPole-v1"), client.session("cartpole"))
+
+or for a vector environment::
+
+    envs = gym.make_vec("CartPole-v1", num_envs=8)
+    envs = tamrm.gym.VectorShapedReward(envs, client.session("cartpole", envs.num_envs))
+
+The original reward and the shaping parts are put into ``info`` under
+``original_reward``, ``knn_reward``, ``potential``, ``shaping_step``, ``knn_active`` and
+``pool_version`` (for vector environments: arrays with ``_``-prefixed masks, following
+gymnasium's vector info convention). ``terminated`` and ``truncated`` are passed through
+unchanged and sent to the server separately: a terminated step has V(s') = 0, a
+truncated one uses the value of the real last observation (SPEC §4).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, SupportsFloat
+
+import gymnasium
+import numpy as np
+import numpy.typing as npt
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
+
+from tamrm._session import Session
+from tamrm._types import StepResult, TaskConfig
+from tamrm._values import ValueFn, copy_obs, select_obs, set_obs_row, value_kwargs
+
+__all__ = ["INFO_KEYS", "ShapedReward", "ValueFn", "VectorShapedReward"]
+
+#: The ``info`` keys the wrappers add.
+INFO_KEYS: tuple[str, ...] = (
+    "original_reward",
+    "knn_reward",
+    "potential",
+    "shaping_step",
+    "knn_active",
+    "pool_version",
+)
+
+
+def check_action_space(space: spaces.Space[Any], config: TaskConfig) -> None:
+    """Check that an action space matches a task's configuration.
+
+    Raises:
+        ValueError: A discrete task with a non-``Discrete(num_actions)`` space (starting at
+            0), or a continuous task with a space whose flat size is not ``action_dim``.
+    """
+    if config.discrete:
+        if not isinstance(space, spaces.Discrete):
+            raise ValueError(
+                f"task has num_actions={config.num_actions} but the action space is {space}"
+            )
+        if int(space.n) != config.num_actions or int(space.start) != 0:
+            raise ValueError(
+                f"task has num_actions={config.num_actions} but the action space is {space} "
+                "(need Discrete(num_actions) starting at 0)"
+            )
+    else:
+        if not isinstance(space, spaces.Box) or int(np.prod(space.shape)) != config.action_dim:
+            raise ValueError(
+                f"task has action_dim={config.action_dim} but the action space is {space}"
+            )
+
+
+def _single_action(action: Any, config: TaskConfig) -> npt.NDArray[Any]:
+    arr = np.asarray(action)
+    if config.discrete:
+        return arr.reshape(1)
+    return arr.reshape(1, config.action_dim)
+
+
+class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
+    """Shape the reward of a single gymnasium environment through a tamrm session.
+
+    Each ``step`` sends one entry (action, reward, terminated, truncated and, with a
+    ``value_fn``, V or Q of the previous and the new observation) and returns the shaped
+    reward. A ``reset`` in the middle of an episode restarts the session's stream so that
+    the unfinished episode is discarded by the server rather than continued.
+
+    Args:
+        env: The environment. Its action space must match the task: ``Discrete(n)`` for
+            ``num_actions=n``, a ``Box`` of ``action_dim`` elements otherwise.
+        session: An open session (``client.session(task_id)``); the wrapper uses its
+            environment ``env_id``.
+        value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
+            ``(B, num_actions)`` for a batch of observations; without it F = 0.
+        env_id: Which of the session's environments this wrapper drives.
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env[Any, Any],
+        session: Session,
+        value_fn: ValueFn | None = None,
+        *,
+        env_id: int = 0,
+    ) -> None:
+        super().__init__(env)
+        if not 0 <= env_id < session.num_envs:
+            raise ValueError(f"env_id {env_id} is not < session.num_envs={session.num_envs}")
+        check_action_space(env.action_space, session.config)
+        self.session = session
+        self.value_fn = value_fn
+        self.env_id = env_id
+        self._env_ids = None if session.num_envs == 1 else np.array([env_id], dtype=np.int64)
+        self._obs: Any = None
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset the environment; restart the stream if an episode was in progress."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        if self.session.episodes_in_progress[self.env_id]:
+            self.session.restart()
+        self._obs = obs
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        """Step the environment and return the shaped reward (the original is in ``info``)."""
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        values: dict[str, npt.NDArray[np.float64]] = {}
+        if self.value_fn is not None:
+            if self._obs is None:
+                raise RuntimeError("call reset() before step()")
+            values = value_kwargs(
+                self.value_fn,
+                np.expand_dims(np.asarray(self._obs), 0),
+                np.expand_dims(np.asarray(obs), 0),
+                1,
+            )
+        result = self.session.step(
+            _single_action(action, self.session.config),
+            np.array([float(reward)]),
+            np.array([bool(terminated)]),
+            np.array([bool(truncated)]),
+            env_ids=self._env_ids,
+            **values,
+        )
+        self._obs = obs
+        info = dict(info)
+        info["original_reward"] = float(reward)
+        info["knn_reward"] = float(result.knn_rewards[0])
+        info["potential"] = float(result.potentials[0])
+        info["shaping_step"] = int(result.steps[0])
+        info["knn_active"] = bool(result.knn_active[0])
+        info["pool_version"] = result.pool_version
+        return obs, float(result.rewards[0]), terminated, truncated, info
+
+
+def _autoreset_mode(env: VectorEnv[Any, Any, Any]) -> AutoresetMode:
+    mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+    if isinstance(mode, AutoresetMode):
+        return mode
+    if isinstance(mode, str):
+        for member in AutoresetMode:
+            if mode in (member.value, member.name):
+                return member
+    raise ValueError(f"unknown autoreset_mode {mode!r}")
+
+
+class VectorShapedReward(VectorWrapper):
+    """Shape the rewards of a gymnasium vector environment through one tamrm session.
+
+    One ``step`` of the vector environment is one round trip on the session. Both
+    autoreset modes are handled:
+
+    - ``NEXT_STEP`` (gymnasium's default): the step after an episode ended only resets
+      that sub-environment (its reward is 0 and it is not an environment step), so it is
+      not sent; the ``done`` step's observation is the real last one.
+    - ``SAME_STEP``: every step is sent; the real last observation of an ended episode is
+      taken from ``info["final_obs"]`` for V(s').
+    - ``DISABLED``: every step is sent; reset finished sub-environments yourself.
+
+    ``info`` gets ``original_reward``, ``knn_reward``, ``potential``, ``shaping_step``,
+    ``knn_active`` and ``pool_version`` arrays with ``_``-prefixed masks telling which
+    sub-environments were shaped on this step.
+
+    Args:
+        env: The vector environment (``num_envs`` must equal ``session.num_envs``).
+        session: An open session with ``num_envs`` environments.
+        value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
+            ``(B, num_actions)``; without it F = 0.
+    """
+
+    def __init__(
+        self,
+        env: VectorEnv[Any, Any, Any],
+        session: Session,
+        value_fn: ValueFn | None = None,
+    ) -> None:
+        super().__init__(env)
+        if session.num_envs != env.num_envs:
+            raise ValueError(
+                f"session has num_envs={session.num_envs} but the vector env has {env.num_envs}"
+            )
+        check_action_space(env.single_action_space, session.config)
+        self.session = session
+        self.value_fn = value_fn
+        self.autoreset_mode = _autoreset_mode(env)
+        self._obs: Any = None
+        self._autoreset = np.zeros(env.num_envs, dtype=np.bool_)
+
+    def reset(
+        self,
+        *,
+        seed: int | None = None,
+        options: dict[str, Any] | None = None,
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset (all or, with ``options["reset_mask"]``, some) sub-environments.
+
+        Restarts the session's stream if an episode that is being reset was in progress
+        (the server then discards every unfinished episode of the session).
+        """
+        obs, info = self.env.reset(seed=seed, options=options)
+        mask = np.ones(self.num_envs, dtype=np.bool_)
+        if options is not None and "reset_mask" in options:
+            mask = np.asarray(options["reset_mask"], dtype=np.bool_)
+        interrupted = self.session.episodes_in_progress & mask
+        if interrupted.any():
+            if not mask.all() and (self.session.episodes_in_progress & ~mask).any():
+                warnings.warn(
+                    "resetting a sub-environment in the middle of an episode restarts the "
+                    "tamrm stream, which also discards the other unfinished episodes",
+                    stacklevel=2,
+                )
+            self.session.restart()
+        self._autoreset[mask] = False
+        self._obs = obs
+        return obs, info
+
+    def step(
+        self, actions: Any
+    ) -> tuple[
+        Any, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
+    ]:
+        """Step every sub-environment and return the shaped rewards."""
+        obs, reward, terminated, truncated, info = self.env.step(actions)
+        rewards = np.asarray(reward, dtype=np.float64)
+        term = np.asarray(terminated, dtype=np.bool_)
+        trunc = np.asarray(truncated, dtype=np.bool_)
+        acts = np.asarray(actions)
+
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            sent = ~self._autoreset
+        else:
+            sent = np.ones(self.num_envs, dtype=np.bool_)
+        all_sent = bool(sent.all())
+        rows = None if all_sent else np.flatnonzero(sent)
+
+        values: dict[str, npt.NDArray[np.float64]] = {}
+        if self.value_fn is not None:
+            if self._obs is None:
+                raise RuntimeError("call reset() before step()")
+            next_obs = obs
+            if self.autoreset_mode == AutoresetMode.SAME_STEP and "final_obs" in info:
+                final_mask = np.asarray(info.get("_final_obs", term | trunc), dtype=np.bool_)
+                if final_mask.any():
+                    next_obs = copy_obs(obs)
+                    for i in np.flatnonzero(final_mask):
+                        set_obs_row(next_obs, int(i), info["final_obs"][i])
+            size = self.num_envs if rows is None else int(rows.shape[0])
+            values = value_kwargs(
+                self.value_fn, select_obs(self._obs, rows), select_obs(next_obs, rows), size
+            )
+
+        result = self.session.step(
+            acts if rows is None else acts[rows],
+            rewards if rows is None else rewards[rows],
+            term if rows is None else term[rows],
+            trunc if rows is None else trunc[rows],
+            env_ids=rows,
+            **values,
+        )
+        shaped = rewards.copy()
+        shaped[sent] = result.rewards
+        info = dict(info)
+        self._add_shaping_info(info, result, rewards, sent)
+        self._obs = obs
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            self._autoreset = term | trunc
+        return obs, shaped, term, trunc, info
+
+    def _add_shaping_info(
+        self,
+        info: dict[str, Any],
+        result: StepResult,
+        rewards: npt.NDArray[np.float64],
+        sent: npt.NDArray[np.bool_],
+    ) -> None:
+        n = self.num_envs
+        columns: dict[str, npt.NDArray[Any]] = {
+            "original_reward": rewards.copy(),
+            "knn_reward": np.zeros(n, dtype=np.float64),
+            "potential": np.zeros(n, dtype=np.float64),
+            "shaping_step": np.zeros(n, dtype=np.int64),
+            "knn_active": np.zeros(n, dtype=np.bool_),
+            "pool_version": np.full(n, result.pool_version, dtype=np.int64),
+        }
+        columns["knn_reward"][sent] = result.knn_rewards
+        columns["potential"][sent] = result.potentials
+        columns["shaping_step"][sent] = result.steps
+        columns["knn_active"][sent] = result.knn_active
+        for key, column in columns.items():
+            info[key] = column
+            info[f"_{key}"] = sent.copy()

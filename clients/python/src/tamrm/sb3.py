@@ -1,0 +1,183 @@
+"""Stable-Baselines3 integration (install with ``pip install 'tamrm[sb3]'``).
+
+:class:`ShapedVecEnv` wraps an SB3 ``VecEnv`` so that the rewards the model learns from
+are the shaped ones; no change to SB3 is needed::
+
+    venv = make_vec_env("CartPole-v1", n_envs=8)
+    with client.session("cartpole", venv.num_envs) as session:
+        env = tamrm.sb3.ShapedVecEnv(venv, session)
+        model = A2C("MlpPolicy", env)
+        env.bind_model(model)  # optional: F from the model's own value estimates
+        model.learn(100_000)
+
+SB3 resets a sub-environment inside the step that ended its episode: the returned
+observation is already the reset one and the real last observation is in
+``infos[i]["terminal_observation"]``; ``infos[i]["TimeLimit.truncated"]`` tells a time
+limit from a real termination. Both are used here: a truncated step is sent as
+``truncated`` with V(s') of the real last observation, a terminated one as
+``terminated`` (the server takes V(s') = 0).
+
+Each env's ``info`` gets ``original_reward``, ``knn_reward``, ``potential``,
+``shaping_step``, ``knn_active`` and ``pool_version``. Episode statistics recorded by
+SB3's ``Monitor`` (below the ``VecEnv``) stay in terms of the original reward.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+
+from tamrm._session import Session
+from tamrm._values import ValueFn, copy_obs, set_obs_row, value_kwargs
+from tamrm.gym import check_action_space
+
+__all__ = ["ShapedVecEnv", "model_value_fn"]
+
+
+def model_value_fn(model: Any) -> ValueFn:
+    """Return a ``value_fn`` computing a Stable-Baselines3 model's own value estimates.
+
+    - Models with a Q-network (``DQN``: ``model.policy.q_net``) give Q(s, ·); the server
+      takes V(s) = max_a Q(s, a).
+    - Actor-critic models (``A2C``, ``PPO``: ``model.policy.predict_values``) give V(s).
+
+    Observations are preprocessed exactly as the policy does (``obs_to_tensor``), and
+    the evaluation runs under ``torch.no_grad()``.
+
+    Raises:
+        TypeError: The model's policy has neither ``q_net`` nor ``predict_values``.
+    """
+    import torch
+
+    policy = model.policy
+    if hasattr(policy, "q_net"):
+        q_net = policy.q_net
+
+        def q_values(obs: Any) -> npt.NDArray[np.float64]:
+            tensor, _ = policy.obs_to_tensor(obs)
+            with torch.no_grad():
+                out = q_net(tensor)
+            return np.asarray(out.cpu().numpy(), dtype=np.float64)
+
+        return q_values
+    if hasattr(policy, "predict_values"):
+
+        def state_values(obs: Any) -> npt.NDArray[np.float64]:
+            tensor, _ = policy.obs_to_tensor(obs)
+            with torch.no_grad():
+                out = policy.predict_values(tensor)
+            return np.asarray(out.cpu().numpy(), dtype=np.float64).reshape(-1)
+
+        return state_values
+    raise TypeError(
+        f"{type(model).__name__}: its policy has neither q_net (DQN) nor predict_values "
+        "(A2C/PPO); pass your own value_fn"
+    )
+
+
+class ShapedVecEnv(VecEnvWrapper):
+    """A Stable-Baselines3 ``VecEnv`` wrapper whose rewards are shaped by tamrm.
+
+    Every ``step`` of the vector env is one round trip on ``session``. Make it the
+    outermost wrapper (the model's ``env``) when binding the model's value estimates, so
+    that the observations it passes to the model are the ones the model sees.
+
+    Args:
+        venv: The SB3 vector environment (``num_envs`` must equal ``session.num_envs``).
+        session: An open session with ``venv.num_envs`` environments.
+        value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
+            ``(B, num_actions)``; see also :meth:`bind_model`. Without one, F = 0.
+    """
+
+    def __init__(self, venv: VecEnv, session: Session, value_fn: ValueFn | None = None) -> None:
+        super().__init__(venv)
+        if session.num_envs != venv.num_envs:
+            raise ValueError(
+                f"session has num_envs={session.num_envs} but the VecEnv has {venv.num_envs}"
+            )
+        check_action_space(venv.action_space, session.config)
+        self.session = session
+        self.value_fn = value_fn
+        self._obs: Any = None
+        self._actions: Any = None
+
+    def bind_model(self, model: Any) -> ShapedVecEnv:
+        """Use ``model``'s own value estimates for the potential term F.
+
+        See :func:`model_value_fn`. Call it after the model is built (the model needs the
+        env to be built).
+        Returns ``self``.
+        """
+        self.value_fn = model_value_fn(model)
+        get_env = getattr(model, "get_env", None)
+        if callable(get_env) and get_env() is not self:
+            warnings.warn(
+                "the model's env is not this ShapedVecEnv (is it wrapped further?): the "
+                "values are computed on this wrapper's observations",
+                stacklevel=2,
+            )
+        return self
+
+    def reset(self) -> Any:
+        """Reset every sub-environment; restart the stream if episodes were in progress."""
+        obs = self.venv.reset()
+        if self.session.episodes_in_progress.any():
+            self.session.restart()
+        self._obs = obs
+        return obs
+
+    def step_async(self, actions: npt.NDArray[Any]) -> None:
+        """Send the actions to the wrapped env (and remember them for shaping)."""
+        self._actions = actions
+        self.venv.step_async(actions)
+
+    def step_wait(
+        self,
+    ) -> tuple[Any, npt.NDArray[np.float32], npt.NDArray[np.bool_], list[dict[str, Any]]]:
+        """Wait for the step, shape its rewards in one round trip and return them."""
+        obs, rewards, dones, infos = self.venv.step_wait()
+        dones = np.asarray(dones, dtype=np.bool_)
+        done_rows = np.flatnonzero(dones)
+        truncated = np.zeros(self.num_envs, dtype=np.bool_)
+        for row in done_rows.tolist():
+            truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
+        terminated = dones & ~truncated
+
+        values: dict[str, npt.NDArray[np.float64]] = {}
+        if self.value_fn is not None:
+            if self._obs is None:
+                raise RuntimeError("call reset() before step()")
+            next_obs = obs
+            if done_rows.size:
+                next_obs = copy_obs(obs)
+                for row in done_rows.tolist():
+                    final = infos[row].get("terminal_observation")
+                    if final is not None:
+                        set_obs_row(next_obs, row, final)
+            values = value_kwargs(self.value_fn, self._obs, next_obs, self.num_envs)
+
+        actions = np.asarray(self._actions)
+        if self.session.config.discrete:
+            actions = actions.reshape(self.num_envs)
+        else:
+            actions = actions.reshape(self.num_envs, self.session.config.action_dim)
+        result = self.session.step(
+            actions,
+            np.asarray(rewards, dtype=np.float64),
+            terminated,
+            truncated,
+            **values,
+        )
+        for i, info in enumerate(infos):
+            info["original_reward"] = float(rewards[i])
+            info["knn_reward"] = float(result.knn_rewards[i])
+            info["potential"] = float(result.potentials[i])
+            info["shaping_step"] = int(result.steps[i])
+            info["knn_active"] = bool(result.knn_active[i])
+            info["pool_version"] = result.pool_version
+        self._obs = obs
+        return obs, result.rewards.astype(np.float32), dones, infos

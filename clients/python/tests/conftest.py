@@ -1,0 +1,52 @@
+"""Fixtures: one real ``tamrm`` server per test session, unique task ids per test."""
+
+from __future__ import annotations
+
+import os
+import re
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from hypothesis import settings
+
+import tamrm
+
+# No per-example deadline (CI machines are small and shared); derandomized in CI so that a
+# run is reproducible.
+settings.register_profile("default", deadline=None)
+settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
+settings.load_profile("ci" if os.environ.get("CI") else "default")
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+
+
+def _binary() -> str:
+    env = os.environ.get("TAMRM_BIN")
+    if env:
+        return env
+    return str(tamrm.find_binary())
+
+
+@pytest.fixture(scope="session")
+def server_binary() -> str:
+    return _binary()
+
+
+@pytest.fixture(scope="session")
+def server(server_binary: str) -> Iterator[tamrm.LocalServer]:
+    with tamrm.local_server(binary=server_binary) as srv:
+        yield srv
+
+
+@pytest.fixture(scope="session")
+def client(server: tamrm.LocalServer) -> Iterator[tamrm.Client]:
+    with tamrm.Client(server.address) as c:
+        yield c
+
+
+@pytest.fixture
+def task_id(request: pytest.FixtureRequest) -> str:
+    name = re.sub(r"[^A-Za-z0-9._-]", "-", request.node.name)[:80]
+    return f"t/{name}/{uuid.uuid4().hex[:8]}"

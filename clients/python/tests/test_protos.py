@@ -1,0 +1,68 @@
+"""The checked-in stubs are exactly what the pinned generators make from proto/."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CLIENT = Path(__file__).resolve().parents[1]
+CHECKED_IN = CLIENT / "src" / "tamrm" / "_proto"
+
+
+def _load_gen_protos():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location(
+        "gen_protos", CLIENT / "scripts" / "gen_protos.py"
+    )
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_stubs_are_up_to_date(tmp_path: Path) -> None:
+    pytest.importorskip("grpc_tools")
+    gen = _load_gen_protos()
+    fresh = tmp_path / "_proto"
+    gen.generate(fresh)
+    stale = gen.stale_files(fresh, CHECKED_IN)
+    assert stale == [], f"stale stubs, run scripts/gen_protos.py: {stale}"
+    # The comparison itself detects a change.
+    target = fresh / "tamrm" / "v1" / "shaping_pb2.py"
+    target.write_bytes(target.read_bytes() + b"\n")
+    assert gen.stale_files(fresh, CHECKED_IN) == ["tamrm/v1/shaping_pb2.py"]
+
+
+def test_check_mode_exit_code() -> None:
+    pytest.importorskip("grpc_tools")
+    proc = subprocess.run(
+        [sys.executable, str(CLIENT / "scripts" / "gen_protos.py"), "--check"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_stubs_import_inside_the_package() -> None:
+    from tamrm._proto.tamrm.v1 import shaping_pb2, shaping_pb2_grpc
+
+    assert shaping_pb2.DESCRIPTOR.name == "tamrm/v1/shaping.proto"
+    assert shaping_pb2.DESCRIPTOR.package == "tamrm.v1"
+    assert hasattr(shaping_pb2_grpc, "ShapingStub")
+    service = shaping_pb2.DESCRIPTOR.services_by_name["Shaping"]
+    assert [m.name for m in service.methods] == [
+        "CreateTask",
+        "GetTask",
+        "ListTasks",
+        "DeleteTask",
+        "ResetPool",
+        "GetPool",
+        "AddTrajectory",
+        "Shape",
+    ]
+    # The stubs did not shadow or get shadowed by the client package.
+    assert "tamrm.v1" not in sys.modules
