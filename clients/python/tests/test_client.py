@@ -219,20 +219,17 @@ def test_add_trajectory_pool_rules(client: tamrm.Client, task_id: str) -> None:
     assert stats.worst_score == 1.0
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="server bug: AddTrajectory does not count in TaskStats.episodes_completed "
-    "(src/registry.rs TaskHandle::offer); remove this marker once fixed",
-)
-def test_add_trajectory_counts_as_completed_episode(client: tamrm.Client, task_id: str) -> None:
-    # TaskStats.episodes_completed: "Episodes ended on this task (by streams or
-    # AddTrajectory), whether stored or not" (proto).
+def test_episodes_completed_counts_stream_episodes_only(client: tamrm.Client, task_id: str) -> None:
+    # TaskStats.episodes_completed: "Episodes ended by Shape streams on this task, whether
+    # their trajectory was stored or not" (proto); AddTrajectory is not an episode.
     client.create_task(task_id, num_actions=2, pool_capacity=1)
     client.add_trajectory(task_id, [0, 1], 2.0)
     assert not client.add_trajectory(task_id, [1], 1.0).inserted
     with client.session(task_id, 1) as s:
-        s.step([0], [0.0], terminated=[True])
-    assert client.get_task(task_id).stats.episodes_completed == 3
+        s.step([0], [0.0], terminated=[True])  # score 0.0 < 2.0: discarded, still counted
+    stats = client.get_task(task_id).stats
+    assert stats.episodes_completed == 1
+    assert stats.pool_size == 1
 
 
 def test_add_trajectory_truncates_to_max_len(client: tamrm.Client, task_id: str) -> None:
