@@ -406,6 +406,9 @@ def _worker_run(spec: RunSpec, address: str, out: str) -> dict[str, Any]:
         if queue is not None:
             queue.put((spec.key, n))
 
+    if is_complete(Path(out), spec):  # finished meanwhile by another invocation
+        meta: dict[str, Any] = json.loads(run_paths(Path(out), spec)[2].read_text())
+        return meta
     return run_one(spec, address, Path(out), progress)
 
 
