@@ -735,9 +735,13 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
     invs = [i for i in all_invs if not i.get("interrupted")]
     interrupted = [i for i in all_invs if i.get("interrupted")]
     wall = sum(float(i.get("wall_time_s", 0)) for i in invs)
+    wall_int = sum(float(i.get("wall_time_s", 0)) for i in interrupted)
+    starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
+    ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
+    elapsed = f"from {starts[0]} to {ends[-1]}" if starts and ends else "times unknown"
     run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
     total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
-    commands = sorted({i["command"] for i in invs})
+    commands = sorted({i["command"] for i in all_invs})
     vers = runs[0].meta.get("versions", {})
     diff_versions = sorted({json.dumps(r.meta.get("versions", {}), sort_keys=True) for r in runs})
     lines += [
@@ -752,16 +756,12 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         *[f"      {c}" for c in commands],
         "",
         f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
-        f"- Wall time of the run invocations: {wall / 60:.1f} min "
-        f"({len(invs)} invocation(s)); sum of per-run wall times {run_wall / 60:.1f} min; "
-        f"{total_steps:,} environment steps, each one gRPC round trip."
-        + (
-            f" ({len(interrupted)} interrupted invocation(s), "
-            f"{sum(float(i.get('wall_time_s', 0)) for i in interrupted) / 60:.1f} min, not "
-            "counted: their unfinished runs were redone.)"
-            if interrupted
-            else ""
-        ),
+        f"- Wall time: {(wall + wall_int) / 60:.1f} min over {len(all_invs)} grid "
+        f"invocation(s) ({elapsed}); {len(interrupted)} of them were interrupted and "
+        "restarted (to change a budget or the number of jobs: a run whose settings changed "
+        "was redone, finished runs with unchanged settings were kept). Sum of the wall times "
+        f"of the {len(runs)} runs reported: {run_wall / 60:.1f} min; "
+        f"{total_steps:,} environment steps, each one gRPC round trip.",
         "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
     ]
     lines += [
@@ -785,8 +785,17 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         )
     lines.append("")
     if len(diff_versions) > 1:
-        n_sets = len(diff_versions)
-        lines.append(f"- Note: the runs were made with {n_sets} different version sets.")
+        varying = {}
+        for r in runs:
+            for k, v in r.meta.get("versions", {}).items():
+                varying.setdefault(k, set()).add(str(v))
+        parts = [f"{k}: {', '.join(sorted(v))}" for k, v in sorted(varying.items()) if len(v) > 1]
+        lines.append(
+            "- Versions that differ between runs (the repository's HEAD moved while other "
+            "work was committed; the server binary and the packages are what count): "
+            + "; ".join(parts)
+            + "."
+        )
     lines += ["", "## Deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
     lines += [""]
