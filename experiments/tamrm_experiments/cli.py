@@ -30,6 +30,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--profile", choices=sorted(PROFILES), help="budget profile (default full)")
     run.add_argument("--seeds", type=int, help="number of seeds 0..N-1 (default: the profile's)")
     run.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="skip seeds below this one (e.g. to run seed 4 in a second invocation)",
+    )
+    run.add_argument(
         "--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: all cores)"
     )
     run.add_argument(
@@ -37,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--experiments", nargs="+", choices=sorted(EXPERIMENTS), help="subset")
     run.add_argument("--arms", nargs="+", choices=list(ARMS), help="subset of arms")
+    run.add_argument(
+        "--reverse", action="store_true", help="run the grid from its end (a second invocation)"
+    )
     run.add_argument("--address", help="use a running server instead of starting one")
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--dry-run", action="store_true", help="list the runs to do and exit")
@@ -59,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         profile = args.profile or ("quick" if args.quick else "full")
         default_out = "runs-quick" if profile == "quick" else "runs"
         out = args.out or EXPERIMENTS_DIR / default_out
-        specs = make_specs(profile, args.seeds, args.experiments, args.arms)
+        specs = make_specs(profile, args.seeds, args.experiments, args.arms, args.first_seed)
+        if args.reverse:
+            specs.reverse()
         if args.dry_run:
             for spec in specs:
                 state = "done" if is_complete(out, spec) else "todo"

@@ -269,6 +269,7 @@ def make_specs(
     seeds: int | None = None,
     experiments: list[str] | None = None,
     arms: list[str] | None = None,
+    first_seed: int = 0,
 ) -> list[RunSpec]:
     """The run grid, seed-major (every experiment and arm of seed 0 first), so that a
     partial run has whole seeds across arms."""
@@ -277,7 +278,7 @@ def make_specs(
     exps = experiments or list(EXPERIMENTS)
     arm_names = arms or list(ARMS)
     specs = []
-    for seed in range(n):
+    for seed in range(first_seed, n):
         for exp in exps:
             budget = prof.budgets[exp]
             for arm in arm_names:

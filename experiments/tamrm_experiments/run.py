@@ -409,7 +409,36 @@ def _worker_run(spec: RunSpec, address: str, out: str) -> dict[str, Any]:
     if is_complete(Path(out), spec):  # finished meanwhile by another invocation
         meta: dict[str, Any] = json.loads(run_paths(Path(out), spec)[2].read_text())
         return meta
-    return run_one(spec, address, Path(out), progress)
+    lock = _lock(Path(out), spec)
+    if lock is None:  # being run by another invocation right now
+        return {"episodes": 0, "skipped": "running elsewhere"}
+    try:
+        return run_one(spec, address, Path(out), progress)
+    finally:
+        lock.unlink(missing_ok=True)
+
+
+def _lock(out: Path, spec: RunSpec) -> Path | None:
+    """Take the run's lock file (several invocations may share a runs directory)."""
+    path = run_paths(out, spec)[0].with_suffix(".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                pid = int(path.read_text().strip() or "0")
+                os.kill(pid, 0)
+                return None  # its owner is alive
+            except (ValueError, ProcessLookupError, FileNotFoundError):
+                path.unlink(missing_ok=True)  # stale: its owner died
+                continue
+            except PermissionError:
+                return None
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        return path
+    return None
 
 
 def run_grid(
