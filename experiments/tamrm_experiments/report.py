@@ -724,6 +724,23 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         lines += ["No finished runs yet.", ""]
         out.write_text("\n".join(lines))
         return
+    have = {(r.experiment, r.arm, r.seed) for r in runs}
+    missing = [
+        f"{e}/{a}/seed{sd}"
+        for sd in seeds
+        for e in EXPERIMENTS
+        for a in ARMS
+        if (e, a, sd) not in have
+    ]
+    if missing:
+        lines += [
+            f"> **Incomplete grid**: {len(missing)} of {len(seeds) * len(EXPERIMENTS) * len(ARMS)}"
+            " runs (experiment/arm/seed) did not finish in the session and are left out: "
+            + ", ".join(missing)
+            + ". The tables give the number of seeds per arm; `experiments/reproduce.sh` "
+            "resumes and runs only these.",
+            "",
+        ]
     if "quick" in profiles:
         lines += [
             "> **Quick (smoke-test) profile**: tiny budgets, 1 seed. These numbers say "
