@@ -228,7 +228,8 @@ fn assert_configs_bit_exact(a: &[proto::Task], b: &[proto::Task]) {
 }
 
 async fn wait_open_streams(c: &mut Client, id: &str, want: u32) {
-    let deadline = Instant::now() + Duration::from_secs(5);
+    // A liveness bound, generous for a loaded CI machine.
+    let deadline = Instant::now() + Duration::from_secs(30);
     while get_task(c, id).await.stats.unwrap().open_streams != want {
         assert!(Instant::now() < deadline, "open_streams of {id} != {want}");
         tokio::time::sleep(Duration::from_millis(10)).await;
@@ -887,7 +888,8 @@ async fn graceful_shutdown_finishes_the_batch_in_flight() {
         break (receiver, sent_at, killed_at);
     };
     // Once the server has logged that it is shutting down, it accepts no new connections.
-    let deadline = Instant::now() + Duration::from_secs(5);
+    // (A liveness bound, generous for a loaded CI machine.)
+    let deadline = Instant::now() + Duration::from_secs(30);
     while !p.stderr().contains("shutting down") {
         assert!(
             Instant::now() < deadline,
@@ -977,8 +979,10 @@ async fn an_idle_open_stream_does_not_delay_exit() {
     let t0 = Instant::now();
     let (status, stderr) = bin.terminate();
     assert!(status.success(), "{stderr}");
+    // Well below the 30 s grace period the server would wait for a stream that
+    // kept it from exiting; generous for a loaded machine.
     assert!(
-        t0.elapsed() < Duration::from_secs(5),
+        t0.elapsed() < Duration::from_secs(15),
         "exit took {:?} with an idle stream open",
         t0.elapsed()
     );

@@ -19,14 +19,14 @@ use crate::proto::{self};
 use crate::registry::Registry;
 use convert::{config_input, pool_proto, task_proto, trajectory_input, validate_task_id};
 
-/// Runs `f`, which may do blocking disk I/O when the store is durable, without stalling
+/// Runs `f`, which may block (disk I/O, or long CPU work) when `blocks`, without stalling
 /// the async executor: on a multi-threaded runtime the current worker hands its other
 /// tasks off first.
-pub(crate) fn blocking<R>(durable: bool, f: impl FnOnce() -> R) -> R {
+pub(crate) fn blocking<R>(blocks: bool, f: impl FnOnce() -> R) -> R {
     let multi = tokio::runtime::Handle::try_current()
         .map(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
         .unwrap_or(false);
-    if durable && multi {
+    if blocks && multi {
         tokio::task::block_in_place(f)
     } else {
         f()

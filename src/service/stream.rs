@@ -16,6 +16,10 @@ use crate::registry::{Registry, StreamGuard, TaskHandle};
 
 type Tx = Sender<Result<ShapeResponse, Status>>;
 
+/// Entries × pool capacity above which a batch is shaped off the async workers
+/// (about a millisecond of work).
+const HEAVY_BATCH_WORK: usize = 1 << 20;
+
 /// What ended a stream; only errors are sent to the client.
 enum End {
     ClientDone,
@@ -107,12 +111,18 @@ async fn serve(
             Err(end) => return end,
         };
         outputs.clear();
-        // Only an episode end can make the batch write to disk.
+        // Leave the executor thread for a batch that may write to disk (only an episode
+        // end can) or is long enough to hold a worker for a noticeable time.
         let may_write =
             durable && (batch.terminated.iter().any(|&d| d) || batch.truncated.iter().any(|&d| d));
+        let heavy = batch
+            .rewards
+            .len()
+            .saturating_mul(task.config().pool_capacity as usize)
+            > HEAVY_BATCH_WORK;
         let result =
             step_entries(&batch, task.config(), num_envs, registry.limits()).and_then(|entries| {
-                super::blocking(may_write, || {
+                super::blocking(may_write || heavy, || {
                     task.shape_batch(&mut episodes, &entries, &mut scratch, &mut outputs)
                 })
             });
