@@ -566,7 +566,8 @@ def _closing(results: dict[str, dict[str, Any]], n_seeds: int) -> list[str]:
     lines += ["**Ablation (which term does the work)**:", *abl, ""]
     lines += [
         "Caveats: budgets are reduced as stated above; the learners are SB3's, not the "
-        f"authors'; {n_seeds} seed(s) per arm give wide intervals, so 'not decided' means "
+        f"authors'; {n_seeds} seeds or fewer per arm (see the tables) give wide intervals, "
+        "so 'not decided' means "
         "the effect, if any, "
         "is smaller than what these seeds can resolve, not that there is none.",
         "",
@@ -771,6 +772,14 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
     starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
     ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
     elapsed = f"from {starts[0]} to {ends[-1]}" if starts and ends else "times unknown"
+    span_min = 0.0
+    if starts and ends:
+        import datetime as dt
+
+        fmt = "%Y-%m-%dT%H:%M:%SZ"
+        t0 = dt.datetime.strptime(starts[0], fmt)
+        t1 = dt.datetime.strptime(ends[-1], fmt)
+        span_min = (t1 - t0).total_seconds() / 60
     run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
     total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
     commands = sorted({i["command"] for i in all_invs})
@@ -788,8 +797,9 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         *[f"      {c}" for c in commands],
         "",
         f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
-        f"- Wall time: {(wall + wall_int) / 60:.1f} min over {len(all_invs)} grid "
-        f"invocation(s) ({elapsed}); {len(interrupted)} of them were interrupted and "
+        f"- Wall time: {span_min:.0f} min elapsed ({elapsed}) over {len(all_invs)} grid "
+        "invocation(s), some of them concurrent (sharing the runs directory); "
+        f"{len(interrupted)} of them were interrupted and "
         "restarted (to change a budget or the number of jobs: a run whose settings changed "
         "was redone, finished runs with unchanged settings were kept). Sum of the wall times "
         f"of the {len(runs)} runs reported: {run_wall / 60:.1f} min; "
