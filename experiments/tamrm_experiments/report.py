@@ -765,10 +765,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
 
     # How it was run.
     all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
-    invs = [i for i in all_invs if not i.get("interrupted")]
     interrupted = [i for i in all_invs if i.get("interrupted")]
-    wall = sum(float(i.get("wall_time_s", 0)) for i in invs)
-    wall_int = sum(float(i.get("wall_time_s", 0)) for i in interrupted)
     starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
     ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
     elapsed = f"from {starts[0]} to {ends[-1]}" if starts and ends else "times unknown"
