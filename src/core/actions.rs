@@ -37,6 +37,14 @@ impl ActionSeq {
         }
     }
 
+    /// An empty sequence of the same kind (and dimension).
+    pub fn empty_like(&self) -> ActionSeq {
+        match self {
+            ActionSeq::Discrete(_) => ActionSeq::Discrete(Vec::new()),
+            ActionSeq::Continuous { dim, .. } => ActionSeq::empty(*dim),
+        }
+    }
+
     /// Number of actions.
     pub fn len(&self) -> usize {
         match self {

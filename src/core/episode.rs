@@ -173,11 +173,8 @@ impl Episode {
 
         let end = if input.terminated || input.truncated {
             let score = input.score.unwrap_or(self.reward_sum);
-            let actions = std::mem::replace(&mut self.recorded, ActionSeq::empty(0));
-            self.recorded = ActionSeq::empty(match &actions {
-                ActionSeq::Discrete(_) => 0,
-                ActionSeq::Continuous { dim, .. } => *dim,
-            });
+            let fresh = self.recorded.empty_like();
+            let actions = std::mem::replace(&mut self.recorded, fresh);
             self.t = 0;
             self.reward_sum = 0.0;
             // Every distance of the empty prefix is 0; the seqs stay valid.
