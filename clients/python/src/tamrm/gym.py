@@ -94,6 +94,10 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
         value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
             ``(B, num_actions)`` for a batch of observations; without it F = 0.
         env_id: Which of the session's environments this wrapper drives.
+        score_key: Optional ``info`` key holding the episode score S (SPEC §6) on the step
+            that ends an episode, e.g. ``100 / steps`` in a sparse maze. An ending step
+            whose ``info`` lacks the key (e.g. a ``TimeLimit`` truncation) gets the
+            server's default, the sum of the episode's environment rewards.
     """
 
     def __init__(
@@ -103,6 +107,7 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
         value_fn: ValueFn | None = None,
         *,
         env_id: int = 0,
+        score_key: str | None = None,
     ) -> None:
         super().__init__(env)
         if not 0 <= env_id < session.num_envs:
@@ -111,6 +116,7 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
         self.session = session
         self.value_fn = value_fn
         self.env_id = env_id
+        self.score_key = score_key
         self._env_ids = None if session.num_envs == 1 else np.array([env_id], dtype=np.int64)
         self._obs: Any = None
 
@@ -137,12 +143,16 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
                 np.expand_dims(np.asarray(obs), 0),
                 1,
             )
+        scores = None
+        if self.score_key is not None and (terminated or truncated) and self.score_key in info:
+            scores = {0: float(info[self.score_key])}
         result = self.session.step(
             _single_action(action, self.session.config),
             np.array([float(reward)]),
             np.array([bool(terminated)]),
             np.array([bool(truncated)]),
             env_ids=self._env_ids,
+            episode_scores=scores,
             **values,
         )
         self._obs = obs
@@ -189,6 +199,11 @@ class VectorShapedReward(VectorWrapper):
         session: An open session with ``num_envs`` environments.
         value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
             ``(B, num_actions)``; without it F = 0.
+        score_key: Optional ``info`` key holding the episode score S of the
+            sub-environments whose episode ends on this step (with ``SAME_STEP``, looked
+            up in ``info["final_info"]``). Ending sub-environments without it (mask
+            ``info["_" + score_key]``) get the server's default, the sum of the episode's
+            environment rewards.
     """
 
     def __init__(
@@ -196,6 +211,8 @@ class VectorShapedReward(VectorWrapper):
         env: VectorEnv[Any, Any, Any],
         session: Session,
         value_fn: ValueFn | None = None,
+        *,
+        score_key: str | None = None,
     ) -> None:
         super().__init__(env)
         if session.num_envs != env.num_envs:
@@ -206,6 +223,7 @@ class VectorShapedReward(VectorWrapper):
         self.session = session
         self.value_fn = value_fn
         self.autoreset_mode = _autoreset_mode(env)
+        self.score_key = score_key
         self._obs: Any = None
         self._autoreset = np.zeros(env.num_envs, dtype=np.bool_)
 
@@ -220,10 +238,11 @@ class VectorShapedReward(VectorWrapper):
         Restarts the session's stream if an episode that is being reset was in progress
         (the server then discards every unfinished episode of the session).
         """
-        obs, info = self.env.reset(seed=seed, options=options)
+        # Read the mask first: gymnasium's vector envs pop it from ``options``.
         mask = np.ones(self.num_envs, dtype=np.bool_)
         if options is not None and "reset_mask" in options:
-            mask = np.asarray(options["reset_mask"], dtype=np.bool_)
+            mask = np.array(options["reset_mask"], dtype=np.bool_)
+        obs, info = self.env.reset(seed=seed, options=options)
         interrupted = self.session.episodes_in_progress & mask
         if interrupted.any():
             if not mask.all() and (self.session.episodes_in_progress & ~mask).any():
@@ -278,6 +297,7 @@ class VectorShapedReward(VectorWrapper):
             term if rows is None else term[rows],
             trunc if rows is None else trunc[rows],
             env_ids=rows,
+            episode_scores=self._episode_scores(info, (term | trunc) & sent, rows),
             **values,
         )
         shaped = rewards.copy()
@@ -288,6 +308,33 @@ class VectorShapedReward(VectorWrapper):
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
             self._autoreset = term | trunc
         return obs, shaped, term, trunc, info
+
+    def _episode_scores(
+        self,
+        info: dict[str, Any],
+        ending: npt.NDArray[np.bool_],
+        rows: npt.NDArray[np.intp] | None,
+    ) -> dict[int, float] | None:
+        """``{batch row: score}`` of the ending sub-environments that report a score."""
+        key = self.score_key
+        if key is None or not ending.any():
+            return None
+        source = info
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            source = info.get("final_info", {})
+        if key not in source:
+            return None
+        values = source[key]
+        has = np.asarray(source.get(f"_{key}", ending), dtype=np.bool_) & ending
+        # Batch rows are sub-environment indices, or positions in ``rows`` when only some
+        # sub-environments are sent.
+        position = (
+            {int(env): pos for pos, env in enumerate(rows.tolist())} if rows is not None else None
+        )
+        return {
+            int(env) if position is None else position[int(env)]: float(values[env])
+            for env in np.flatnonzero(has)
+        }
 
     def _add_shaping_info(
         self,

@@ -91,9 +91,20 @@ class ShapedVecEnv(VecEnvWrapper):
         session: An open session with ``venv.num_envs`` environments.
         value_fn: Optional ``value_fn(obs_batch)`` returning V(s) ``(B,)`` or Q(s, ·)
             ``(B, num_actions)``; see also :meth:`bind_model`. Without one, F = 0.
+        score_key: Optional ``info`` key holding the episode score S (SPEC §6) on the step
+            that ends an episode, e.g. ``100 / steps`` in a sparse maze. Ending rows whose
+            ``info`` lacks the key (e.g. a ``TimeLimit`` truncation) get the server's
+            default, the sum of the episode's environment rewards.
     """
 
-    def __init__(self, venv: VecEnv, session: Session, value_fn: ValueFn | None = None) -> None:
+    def __init__(
+        self,
+        venv: VecEnv,
+        session: Session,
+        value_fn: ValueFn | None = None,
+        *,
+        score_key: str | None = None,
+    ) -> None:
         super().__init__(venv)
         if session.num_envs != venv.num_envs:
             raise ValueError(
@@ -102,6 +113,7 @@ class ShapedVecEnv(VecEnvWrapper):
         check_action_space(venv.action_space, session.config)
         self.session = session
         self.value_fn = value_fn
+        self.score_key = score_key
         self._obs: Any = None
         self._actions: Any = None
 
@@ -160,6 +172,14 @@ class ShapedVecEnv(VecEnvWrapper):
                         set_obs_row(next_obs, row, final)
             values = value_kwargs(self.value_fn, self._obs, next_obs, self.num_envs)
 
+        scores = None
+        if self.score_key is not None:
+            scores = {
+                row: float(infos[row][self.score_key])
+                for row in done_rows.tolist()
+                if self.score_key in infos[row]
+            }
+
         actions = np.asarray(self._actions)
         if self.session.config.discrete:
             actions = actions.reshape(self.num_envs)
@@ -170,6 +190,7 @@ class ShapedVecEnv(VecEnvWrapper):
             np.asarray(rewards, dtype=np.float64),
             terminated,
             truncated,
+            episode_scores=scores or None,
             **values,
         )
         for i, info in enumerate(infos):
