@@ -141,63 +141,6 @@ def make_env(spec: RunSpec) -> Callable[[], Any]:
     raise ValueError(f"unknown env {exp.env!r}")
 
 
-class _InfoTap:
-    """Remembers the ``infos`` of the last vector step (wrapped below ``ShapedVecEnv``)."""
-
-    last_infos: list[dict[str, Any]]
-
-    def __init__(self) -> None:
-        self.last_infos = []
-
-
-def _tap_wrapper(venv: Any, tap: _InfoTap) -> Any:
-    from stable_baselines3.common.vec_env import VecEnvWrapper
-
-    class InfoTap(VecEnvWrapper):  # type: ignore[misc]
-        def reset(self) -> Any:
-            return self.venv.reset()
-
-        def step_wait(self) -> Any:
-            obs, rewards, dones, infos = self.venv.step_wait()
-            tap.last_infos = infos
-            return obs, rewards, dones, infos
-
-    return InfoTap(venv)
-
-
-class ScoredSession:
-    """A session proxy that adds ``episode_scores`` from the env's infos, and can switch
-    to another session (a fresh task) between episodes.
-
-    ``tamrm.sb3.ShapedVecEnv`` has no way to send client-side episode scores; this proxy
-    (passed to it as its session) adds ``info["episode_score"]`` of the rows that end an
-    episode. Everything else is forwarded to the current session.
-    """
-
-    def __init__(self, session: Any, tap: _InfoTap | None) -> None:
-        self.inner = session
-        self.tap = tap
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.inner, name)
-
-    def step(self, actions: Any, rewards: Any, terminated: Any, truncated: Any, **kw: Any) -> Any:
-        if self.tap is not None:
-            done = np.asarray(terminated) | np.asarray(truncated)
-            scores = {
-                i: float(info["episode_score"])
-                for i, info in enumerate(self.tap.last_infos)
-                if done[i] and "episode_score" in info
-            }
-            if scores:
-                kw["episode_scores"] = scores
-        return self.inner.step(actions, rewards, terminated, truncated, **kw)
-
-    def switch(self, session: Any) -> None:
-        old, self.inner = self.inner, session
-        old.close()
-
-
 # -- one run ---------------------------------------------------------------------------
 
 
@@ -321,19 +264,21 @@ def run_one(
     with tamrm.Client(address) as client:
         env_cls = exp.env
         client.create_task(base_id, num_actions=_num_actions(env_cls), **task_cfg)
-        tap = _InfoTap() if exp.score_from_info else None
-        venv: Any = DummyVecEnv([make_env(spec)])
-        if tap is not None:
-            venv = _tap_wrapper(venv, tap)
-        session = ScoredSession(client.session(base_id, 1), tap)
-        shaped = ShapedVecEnv(venv, session)  # type: ignore[arg-type]
+        shaped = ShapedVecEnv(
+            DummyVecEnv([make_env(spec)]),
+            client.session(base_id, 1),
+            # The maze's score (100 / steps on success) comes with the episode's last info.
+            score_key="episode_score" if exp.score_from_info else None,
+        )
 
         def switch_task(_episode: int) -> None:
             # Modified maze: the start moved, a new task with a fresh pool (paper §IV-B).
+            # Called between episodes, so no episode of the old session is in progress.
             new_id = f"{base_id}/p{len(task_ids)}"
             client.create_task(new_id, num_actions=_num_actions(env_cls), **task_cfg)
             task_ids.append(new_id)
-            session.switch(client.session(new_id, 1))
+            shaped.session.close()
+            shaped.session = client.session(new_id, 1)
 
         algo = {"a2c": A2C, "dqn": DQN}[exp.algo]
         # SB3 mutates policy_kwargs (A2C adds its optimizer class): pass a copy.
@@ -345,7 +290,7 @@ def run_one(
             writer.writeheader()
             callback = _make_callback(spec, writer, fh, progress, switch_task)
             model.learn(total_timesteps=spec.budget.max_total_steps + 1, callback=callback)
-        session.close()
+        shaped.session.close()
         final_pools = {}
         for tid in task_ids:
             task = client.get_task(tid)

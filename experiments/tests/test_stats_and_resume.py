@@ -79,35 +79,3 @@ def test_grid_is_seed_major():
     assert len(specs) == 2 * 4 * 4
     assert {s.seed for s in specs[:16]} == {0}
     assert len({s.key for s in specs}) == len(specs)
-
-
-def test_scored_session_sends_episode_scores_of_finished_rows():
-    from tamrm_experiments.run import ScoredSession, _InfoTap
-
-    calls = []
-
-    class FakeSession:
-        num_envs = 2
-
-        def step(self, actions, rewards, terminated, truncated, **kw):
-            calls.append(kw)
-            return "ok"
-
-        def close(self):
-            calls.append("closed")
-
-    tap = _InfoTap()
-    proxy = ScoredSession(FakeSession(), tap)
-    assert proxy.num_envs == 2
-    tap.last_infos = [{"episode_score": 12.5}, {}]
-    proxy.step([0, 1], [1.0, 0.0], [True, False], [False, False])
-    assert calls[-1] == {"episode_scores": {0: 12.5}}
-    # A score on a row that does not end its episode is not sent.
-    tap.last_infos = [{}, {"episode_score": 3.0}]
-    proxy.step([0, 1], [0.0, 0.0], [False, False], [False, False])
-    assert calls[-1] == {}
-    tap.last_infos = [{}, {"episode_score": 0.0}]
-    proxy.step([0, 1], [0.0, 0.0], [False, False], [False, True])
-    assert calls[-1] == {"episode_scores": {1: 0.0}}
-    proxy.switch(FakeSession())
-    assert calls[-1] == "closed"
