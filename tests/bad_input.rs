@@ -124,14 +124,7 @@ async fn assert_stream_over(what: &str, s: &mut Stream, valid: StepBatch) {
     );
 }
 
-async fn get_task(c: &mut Client, id: &str) -> proto::Task {
-    c.get_task(GetTaskRequest { task_id: id.into() })
-        .await
-        .unwrap_or_else(|e| panic!("get_task {id}: {e}"))
-        .into_inner()
-}
-
-async fn add(
+async fn try_add(
     c: &mut Client,
     id: &str,
     t: Trajectory,
@@ -142,22 +135,6 @@ async fn add(
     })
     .await
     .map(|r| r.into_inner())
-}
-
-fn discrete_traj(actions: Vec<u32>, score: f64) -> Trajectory {
-    Trajectory {
-        actions,
-        score,
-        ..Default::default()
-    }
-}
-
-fn continuous_traj(action_vectors: Vec<f32>, score: f64) -> Trajectory {
-    Trajectory {
-        action_vectors,
-        score,
-        ..Default::default()
-    }
 }
 
 /// What a rejected request must not change: the pool (with its version) and the
@@ -344,19 +321,16 @@ async fn seeded_task(c: &mut Client, id: &str, num_actions: u32, action_dim: u32
     };
     create(c, id, config).await;
     let (best, worst) = if action_dim == 0 {
-        (
-            discrete_traj(vec![0; 200], 10.0),
-            discrete_traj(vec![1; 200], 0.0),
-        )
+        (dtraj(&[0; 200], 10.0), dtraj(&[1; 200], 0.0))
     } else {
         let m = action_dim as usize;
         (
-            continuous_traj(vec![0.0; 200 * m], 10.0),
-            continuous_traj(vec![1.0; 200 * m], 0.0),
+            ctraj(&vec![0.0; 200 * m], 10.0),
+            ctraj(&vec![1.0; 200 * m], 0.0),
         )
     };
-    assert!(add(c, id, best).await.unwrap().inserted);
-    assert!(add(c, id, worst).await.unwrap().inserted);
+    assert!(try_add(c, id, best).await.unwrap().inserted);
+    assert!(try_add(c, id, worst).await.unwrap().inserted);
 }
 
 /// A valid batch for the discrete task (n = 3, 2 envs) that ends env 0's episode with a
@@ -682,13 +656,13 @@ async fn stream_protocol_errors() {
             .await
             .unwrap();
             assert!(
-                add(&mut c, "t", discrete_traj(vec![0; 200], 10.0))
+                try_add(&mut c, "t", dtraj(&[0; 200], 10.0))
                     .await
                     .unwrap()
                     .inserted
             );
             assert!(
-                add(&mut c, "t", discrete_traj(vec![1; 200], 0.0))
+                try_add(&mut c, "t", dtraj(&[1; 200], 0.0))
                     .await
                     .unwrap()
                     .inserted
@@ -751,7 +725,7 @@ async fn unknown_task_is_not_found_on_every_rpc() {
         expect_status("ResetPool", r, Code::NotFound, id);
         let r = c.get_pool(GetPoolRequest { task_id: id.into() }).await;
         expect_status("GetPool", r, Code::NotFound, id);
-        let r = add(&mut c, id, discrete_traj(vec![0, 1], 1.0)).await;
+        let r = try_add(&mut c, id, dtraj(&[0, 1], 1.0)).await;
         expect_status("AddTrajectory", r, Code::NotFound, id);
         let r = open(&mut c, id, 1).await.map(|_| ());
         expect_status("Shape Open", r, Code::NotFound, id);
@@ -834,7 +808,7 @@ async fn invalid_task_ids_on_every_rpc() {
         expect_status(&what("ResetPool"), r, Code::InvalidArgument, "task_id");
         let r = c.get_pool(GetPoolRequest { task_id: id.into() }).await;
         expect_status(&what("GetPool"), r, Code::InvalidArgument, "task_id");
-        let r = add(&mut c, id, discrete_traj(vec![0], 1.0)).await;
+        let r = try_add(&mut c, id, dtraj(&[0], 1.0)).await;
         expect_status(&what("AddTrajectory"), r, Code::InvalidArgument, "task_id");
         let r = open(&mut c, id, 1).await.map(|_| ());
         expect_status(
@@ -1066,7 +1040,7 @@ async fn create_task_is_idempotent_only_for_the_same_resolved_config() {
     let mut c = connect(server.addr()).await;
     let created = create(&mut c, "t", cfg()).await;
     assert!(
-        add(&mut c, "t", discrete_traj(vec![0, 1, 2], 4.0))
+        try_add(&mut c, "t", dtraj(&[0, 1, 2], 4.0))
             .await
             .unwrap()
             .inserted
@@ -1252,19 +1226,19 @@ async fn bad_trajectories_are_rejected() {
         (
             "empty trajectory with a score".into(),
             "d",
-            Some(discrete_traj(vec![], 5.0)),
+            Some(dtraj(&[], 5.0)),
             "trajectory",
         ),
         (
             "action == num_actions".into(),
             "d",
-            Some(discrete_traj(vec![0, 3], 5.0)),
+            Some(dtraj(&[0, 3], 5.0)),
             "trajectory.actions[1]",
         ),
         (
             "action u32::MAX".into(),
             "d",
-            Some(discrete_traj(vec![0, 1, u32::MAX], 5.0)),
+            Some(dtraj(&[0, 1, u32::MAX], 5.0)),
             "trajectory.actions[2]",
         ),
         (
@@ -1281,20 +1255,20 @@ async fn bad_trajectories_are_rejected() {
         (
             "continuous: empty".into(),
             "c",
-            Some(continuous_traj(vec![], 5.0)),
+            Some(ctraj(&[], 5.0)),
             "trajectory",
         ),
         ("continuous: missing".into(), "c", None, "trajectory"),
         (
             "continuous: actions".into(),
             "c",
-            Some(discrete_traj(vec![0, 0], 5.0)),
+            Some(dtraj(&[0, 0], 5.0)),
             "trajectory.actions",
         ),
         (
             "continuous: length not a multiple of action_dim".into(),
             "c",
-            Some(continuous_traj(vec![0.0; 3], 5.0)),
+            Some(ctraj(&[0.0; 3], 5.0)),
             "trajectory.action_vectors",
         ),
     ];
@@ -1302,13 +1276,13 @@ async fn bad_trajectories_are_rejected() {
         cases.push((
             format!("score {label}"),
             "d",
-            Some(discrete_traj(vec![0, 1], x)),
+            Some(dtraj(&[0, 1], x)),
             "trajectory.score",
         ));
         cases.push((
             format!("continuous: score {label}"),
             "c",
-            Some(continuous_traj(vec![0.0; 2], x)),
+            Some(ctraj(&[0.0; 2], x)),
             "trajectory.score",
         ));
     }
@@ -1316,7 +1290,7 @@ async fn bad_trajectories_are_rejected() {
         cases.push((
             format!("continuous: action_vectors[3] {label}"),
             "c",
-            Some(continuous_traj(vec![0.0, 0.0, 0.0, x], 5.0)),
+            Some(ctraj(&[0.0, 0.0, 0.0, x], 5.0)),
             "trajectory.action_vectors[3]",
         ));
     }
@@ -1414,7 +1388,7 @@ async fn limits_are_resource_exhausted() {
 
     // Witness streams ("c" keeps an empty pool: kNN inactive).
     assert!(
-        add(&mut c, "d", discrete_traj(vec![0; 200], 1.0))
+        try_add(&mut c, "d", dtraj(&[0; 200], 1.0))
             .await
             .unwrap()
             .inserted
@@ -1459,7 +1433,7 @@ async fn limits_are_resource_exhausted() {
 
     // max_message_bytes, unary: an AddTrajectory of ~5000 bytes.
     let before = state(&mut c, "d").await;
-    let r = add(&mut c, "d", discrete_traj(vec![1; 5000], 9.0)).await;
+    let r = try_add(&mut c, "d", dtraj(&[1; 5000], 9.0)).await;
     expect_status(
         "unary request > max_message_bytes",
         r,
@@ -1602,7 +1576,7 @@ async fn get_pool_answer_over_max_message_bytes_is_resource_exhausted() {
     create(&mut c, "d", discrete(3, 10, 2, 0, 1)).await;
     // Each request is ~1.5 KB; the pool holding all three is ~4.5 KB.
     for i in 0..3 {
-        let r = add(&mut c, "d", discrete_traj(vec![1; 1500], f64::from(i))).await;
+        let r = try_add(&mut c, "d", dtraj(&[1; 1500], f64::from(i))).await;
         assert!(r.expect("AddTrajectory under the limit").inserted);
     }
     let r = c

@@ -145,46 +145,6 @@ fn settings(dir: &Path) -> Settings {
     }
 }
 
-async fn add(c: &mut Client, id: &str, t: proto::Trajectory) -> proto::AddTrajectoryResponse {
-    c.add_trajectory(proto::AddTrajectoryRequest {
-        task_id: id.into(),
-        trajectory: Some(t),
-    })
-    .await
-    .expect("add_trajectory")
-    .into_inner()
-}
-
-fn dtraj(actions: &[u32], score: f64) -> proto::Trajectory {
-    proto::Trajectory {
-        actions: actions.to_vec(),
-        score,
-        ..Default::default()
-    }
-}
-
-fn ctraj(v: &[f32], score: f64) -> proto::Trajectory {
-    proto::Trajectory {
-        action_vectors: v.to_vec(),
-        score,
-        ..Default::default()
-    }
-}
-
-async fn get_task(c: &mut Client, id: &str) -> proto::Task {
-    c.get_task(proto::GetTaskRequest { task_id: id.into() })
-        .await
-        .expect("get_task")
-        .into_inner()
-}
-
-async fn get_pool(c: &mut Client, id: &str) -> proto::Pool {
-    c.get_pool(proto::GetPoolRequest { task_id: id.into() })
-        .await
-        .expect("get_pool")
-        .into_inner()
-}
-
 /// Every task (full protos, stats included) and every pool.
 async fn snapshot(c: &mut Client) -> (Vec<proto::Task>, Vec<proto::Pool>) {
     let tasks = c
@@ -224,15 +184,6 @@ fn assert_configs_bit_exact(a: &[proto::Task], b: &[proto::Task]) {
         ] {
             assert_eq!(x.unwrap().to_bits(), y.unwrap().to_bits(), "{}", ta.task_id);
         }
-    }
-}
-
-async fn wait_open_streams(c: &mut Client, id: &str, want: u32) {
-    // A liveness bound, generous for a loaded CI machine.
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while get_task(c, id).await.stats.unwrap().open_streams != want {
-        assert!(Instant::now() < deadline, "open_streams of {id} != {want}");
-        tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
 

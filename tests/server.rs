@@ -2,8 +2,6 @@
 //! tonic client, checked against a small naive reference model written from SPEC §2–§6.
 mod common;
 
-use std::time::{Duration, Instant};
-
 use common::*;
 use tamrm::proto::{self, StepBatch};
 use tonic::Code;
@@ -499,39 +497,6 @@ fn random_entries(
         .collect()
 }
 
-async fn get_task(c: &mut Client, id: &str) -> proto::Task {
-    c.get_task(proto::GetTaskRequest { task_id: id.into() })
-        .await
-        .expect("get_task")
-        .into_inner()
-}
-
-async fn get_pool(c: &mut Client, id: &str) -> proto::Pool {
-    c.get_pool(proto::GetPoolRequest { task_id: id.into() })
-        .await
-        .expect("get_pool")
-        .into_inner()
-}
-
-async fn add(c: &mut Client, id: &str, t: proto::Trajectory) -> proto::AddTrajectoryResponse {
-    c.add_trajectory(proto::AddTrajectoryRequest {
-        task_id: id.into(),
-        trajectory: Some(t),
-    })
-    .await
-    .expect("add_trajectory")
-    .into_inner()
-}
-
-fn dtraj(actions: &[u32], score: f64) -> proto::Trajectory {
-    proto::Trajectory {
-        actions: actions.to_vec(),
-        score,
-        seq: 999_999, // ignored by the server
-        ..Default::default()
-    }
-}
-
 /// Checks GetPool and the pool-derived stats against the reference pool.
 async fn check_pool(c: &mut Client, id: &str, pool: &RefPool, ctx: &str) {
     let got = get_pool(c, id).await;
@@ -564,21 +529,6 @@ async fn check_pool(c: &mut Client, id: &str, pool: &RefPool, ctx: &str) {
         (lo, hi),
         "{ctx}: scores"
     );
-}
-
-async fn wait_open_streams(c: &mut Client, id: &str, want: u32) {
-    let deadline = Instant::now() + Duration::from_secs(5);
-    loop {
-        let got = get_task(c, id).await.stats.unwrap().open_streams;
-        if got == want {
-            return;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "open_streams stays {got}, expected {want}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
 }
 
 // ---------------------------------------------------------------------------------------

@@ -77,6 +77,69 @@ pub async fn create(client: &mut Client, id: &str, config: proto::TaskConfig) ->
         .into_inner()
 }
 
+/// GetTask; panics on an error status.
+pub async fn get_task(c: &mut Client, id: &str) -> proto::Task {
+    c.get_task(proto::GetTaskRequest { task_id: id.into() })
+        .await
+        .unwrap_or_else(|e| panic!("get_task {id}: {e}"))
+        .into_inner()
+}
+
+/// GetPool; panics on an error status.
+pub async fn get_pool(c: &mut Client, id: &str) -> proto::Pool {
+    c.get_pool(proto::GetPoolRequest { task_id: id.into() })
+        .await
+        .unwrap_or_else(|e| panic!("get_pool {id}: {e}"))
+        .into_inner()
+}
+
+/// AddTrajectory; panics on an error status.
+pub async fn add(c: &mut Client, id: &str, t: proto::Trajectory) -> proto::AddTrajectoryResponse {
+    c.add_trajectory(proto::AddTrajectoryRequest {
+        task_id: id.into(),
+        trajectory: Some(t),
+    })
+    .await
+    .unwrap_or_else(|e| panic!("add_trajectory {id}: {e}"))
+    .into_inner()
+}
+
+/// A discrete trajectory (its `seq` is set to a value the server must ignore).
+pub fn dtraj(actions: &[u32], score: f64) -> proto::Trajectory {
+    proto::Trajectory {
+        actions: actions.to_vec(),
+        score,
+        seq: 999_999,
+        ..Default::default()
+    }
+}
+
+/// A continuous trajectory: `L * action_dim` floats, row-major.
+pub fn ctraj(action_vectors: &[f32], score: f64) -> proto::Trajectory {
+    proto::Trajectory {
+        action_vectors: action_vectors.to_vec(),
+        score,
+        ..Default::default()
+    }
+}
+
+/// Waits until the task's `open_streams` stat equals `want` (a liveness bound, generous
+/// for a loaded CI machine).
+pub async fn wait_open_streams(c: &mut Client, id: &str, want: u32) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let got = get_task(c, id).await.stats.unwrap().open_streams;
+        if got == want {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "open_streams of {id} stays {got}, expected {want}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
 /// One open Shape stream driven step by step.
 pub struct Stream {
     tx: mpsc::Sender<ShapeRequest>,
