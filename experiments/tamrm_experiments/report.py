@@ -297,6 +297,26 @@ def _invocations(runs_dir: Path) -> list[dict[str, Any]]:
     return out
 
 
+def _busy_minutes(invocations: list[dict[str, Any]]) -> float:
+    """Minutes in the union of the invocations' [start, finish] intervals: wall time
+    during which the grid was running, not counting the gaps between sessions."""
+    import datetime as dt
+
+    spans = []
+    for inv in invocations:
+        if "started_utc" in inv and "finished_utc" in inv:
+            t0 = dt.datetime.strptime(inv["started_utc"], "%Y-%m-%dT%H:%M:%SZ").timestamp()
+            t1 = dt.datetime.strptime(inv["finished_utc"], "%Y-%m-%dT%H:%M:%SZ").timestamp()
+            spans.append((t0, max(t0, t1)))
+    busy = 0.0
+    end = float("-inf")
+    for t0, t1 in sorted(spans):
+        if t1 > end:
+            busy += t1 - max(t0, end)
+            end = t1
+    return busy / 60
+
+
 def _budget_line(exp_name: str, runs: list[Run]) -> str:
     exp = EXPERIMENTS[exp_name]
     budgets = {json.dumps(r.budget, sort_keys=True) for r in runs}
@@ -797,15 +817,8 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
     interrupted = [i for i in all_invs if i.get("interrupted")]
     starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
     ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
-    elapsed = f"from {starts[0]} to {ends[-1]}" if starts and ends else "times unknown"
-    span_min = 0.0
-    if starts and ends:
-        import datetime as dt
-
-        fmt = "%Y-%m-%dT%H:%M:%SZ"
-        t0 = dt.datetime.strptime(starts[0], fmt)
-        t1 = dt.datetime.strptime(ends[-1], fmt)
-        span_min = (t1 - t0).total_seconds() / 60
+    elapsed = f"between {starts[0]} and {ends[-1]}" if starts and ends else "times unknown"
+    busy_min = _busy_minutes(all_invs)
     run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
     total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
     commands = sorted({i["command"] for i in all_invs})
@@ -823,7 +836,8 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         *[f"      {c}" for c in commands],
         "",
         f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
-        f"- Wall time: {span_min:.0f} min elapsed ({elapsed}) over {len(all_invs)} grid "
+        f"- Wall time: {busy_min:.0f} min with at least one grid invocation running "
+        f"({elapsed}, in one or more sessions) over {len(all_invs)} grid "
         "invocation(s), some of them concurrent (sharing the runs directory); "
         f"{len(interrupted)} of them were interrupted and "
         "restarted (to change a budget or the number of jobs: a run whose settings changed "

@@ -79,3 +79,24 @@ def test_grid_is_seed_major():
     assert len(specs) == 2 * 4 * 4
     assert {s.seed for s in specs[:16]} == {0}
     assert len({s.key for s in specs}) == len(specs)
+
+
+def test_busy_minutes_is_the_union_of_invocation_intervals():
+    from tamrm_experiments.report import _busy_minutes
+
+    def inv(start, finish):
+        return {
+            "started_utc": f"2026-01-01T{start}:00Z",
+            "finished_utc": f"2026-01-01T{finish}:00Z",
+        }
+
+    # Overlapping and nested invocations count once; the gap between sessions not at all.
+    invs = [
+        inv("00:00", "01:00"),
+        inv("00:30", "01:30"),
+        inv("03:00", "03:10"),
+        inv("00:10", "00:20"),
+    ]
+    assert _busy_minutes(invs) == 100
+    assert _busy_minutes([*invs, {"started_utc": "2026-01-01T05:00:00Z"}]) == 100  # unfinished
+    assert _busy_minutes([]) == 0
