@@ -375,6 +375,13 @@ def _experiment_section(
         metrics[r.arm].append(run_metrics(r))
         censored[r.arm] += int(bool(r.meta.get("censored")))
     lines.append(f"Budget: {_budget_line(exp_name, runs)}.")
+    if len({json.dumps(r.budget, sort_keys=True) for r in runs}) > 1:
+        lines += [
+            "",
+            "> **Mixed budgets**: this experiment's runs do not share one budget, and the "
+            "statistics below pool them. Rerun its runs under one profile before reading "
+            "the numbers.",
+        ]
     lines.append("")
     mlist = METRICS[exp_name]
     head = ["arm", "seeds", "paper"]

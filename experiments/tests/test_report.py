@@ -1,5 +1,6 @@
 import csv
 import json
+from dataclasses import replace
 
 from tamrm_experiments.configs import ARMS, make_specs
 from tamrm_experiments.report import load_runs, run_metrics, write_report
@@ -75,3 +76,19 @@ def test_report_tables_from_synthetic_runs(tmp_path):
     assert "Maze: TAMRM needs fewer steps than plain DQN" in agrees
     for arm in ARMS.values():
         assert arm.label in text
+
+
+def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
+    runs = tmp_path / "runs"
+    specs = make_specs("quick", seeds=2, experiments=["maze"])
+    for spec in specs:
+        _write_run(runs, spec, [50] * spec.budget.episodes)
+    out = tmp_path / "reproduction.md"
+    write_report(runs, out, tmp_path / "plots")
+    assert "Mixed budgets" not in out.read_text()
+    # One run redone under another budget (e.g. the profile changed mid-grid).
+    longer = replace(specs[0], budget=replace(specs[0].budget, episodes=9))
+    _write_run(runs, longer, [50] * 9)
+    write_report(runs, out, tmp_path / "plots")
+    section = out.read_text().split("## Maze (DQN)")[1]
+    assert "Mixed budgets" in section
