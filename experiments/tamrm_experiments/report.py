@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from tamrm_experiments.configs import ARMS, EXPERIMENTS
+from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs
 from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
 from tamrm_experiments.stats import (
     Interval,
@@ -295,6 +295,30 @@ def _invocations(runs_dir: Path) -> list[dict[str, Any]]:
         except ValueError:
             continue
     return out
+
+
+def _requested(runs_dir: Path) -> list[tuple[str, str, int]]:
+    """(experiment, arm, seed) of every run that some grid invocation asked for, in grid
+    order: each invocation's recorded command line parsed as the ``run`` command does."""
+    import shlex
+
+    from tamrm_experiments.cli import _parser
+
+    keys: dict[tuple[str, str, int], None] = {}
+    for inv in _invocations(runs_dir):
+        argv = shlex.split(inv.get("command", ""))
+        if "tamrm_experiments" not in argv:
+            continue
+        try:
+            args = _parser().parse_args(argv[argv.index("tamrm_experiments") + 1 :])
+        except SystemExit:  # a command line this version cannot parse
+            continue
+        if args.command != "run":
+            continue
+        profile = args.profile or ("quick" if args.quick else "full")
+        for spec in make_specs(profile, args.seeds, args.experiments, args.arms, args.first_seed):
+            keys[(spec.experiment, spec.arm, spec.seed)] = None
+    return list(keys)
 
 
 def _busy_minutes(invocations: list[dict[str, Any]]) -> float:
@@ -782,16 +806,13 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         out.write_text("\n".join(lines))
         return
     have = {(r.experiment, r.arm, r.seed) for r in runs}
-    missing = [
-        f"{e}/{a}/seed{sd}"
-        for sd in seeds
-        for e in EXPERIMENTS
-        for a in ARMS
-        if (e, a, sd) not in have
+    requested = _requested(runs_dir) or [
+        (e, a, sd) for sd in seeds for e in EXPERIMENTS for a in ARMS
     ]
+    missing = [f"{e}/{a}/seed{sd}" for e, a, sd in requested if (e, a, sd) not in have]
     if missing:
         lines += [
-            f"> **Incomplete grid**: {len(missing)} of {len(seeds) * len(EXPERIMENTS) * len(ARMS)}"
+            f"> **Incomplete grid**: {len(missing)} of {len(requested)}"
             " runs (experiment/arm/seed) did not finish in the session and are left out: "
             + ", ".join(missing)
             + ". The tables give the number of seeds per arm; `experiments/reproduce.sh` "

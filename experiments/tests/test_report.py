@@ -92,3 +92,23 @@ def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
     write_report(runs, out, tmp_path / "plots")
     section = out.read_text().split("## Maze (DQN)")[1]
     assert "Mixed budgets" in section
+
+
+def test_incomplete_grid_lists_only_runs_some_invocation_asked_for(tmp_path):
+    runs = tmp_path / "runs"
+    for spec in make_specs("quick", seeds=1, experiments=["maze"]):
+        _write_run(runs, spec, [50] * spec.budget.episodes)
+    commands = [
+        "python -m tamrm_experiments run --quick --experiments maze",
+        # Extra seeds for one arm only: the other arms' seed 1 is not missing.
+        "python -m tamrm_experiments run --quick --experiments maze --arms plain --seeds 2",
+    ]
+    with open(runs / "invocations.jsonl", "w") as fh:
+        for c in commands:
+            fh.write(json.dumps({"command": c, "runs_todo": 1}) + "\n")
+    out = tmp_path / "reproduction.md"
+    write_report(runs, out, tmp_path / "plots")
+    text = out.read_text()
+    assert "**Incomplete grid**: 1 of 5 runs" in text
+    assert "maze/plain/seed1" in text
+    assert "maze/knn/seed1" not in text
