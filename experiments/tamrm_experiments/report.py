@@ -906,6 +906,12 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
             + "; ".join(parts)
             + "."
         )
+        if len(varying.get("tamrm_server_sha256", ())) > 1:
+            lines.append(
+                "- More than one server build served these runs (the binary was rebuilt as "
+                "the code moved on): `git log -- src proto` between the runs' commits says "
+                "what changed."
+            )
     lines += ["", "## Deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
     lines += ["", "## Reading these results", ""]
