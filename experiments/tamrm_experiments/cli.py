@@ -2,66 +2,18 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import sys
-from pathlib import Path
 
-from tamrm_experiments.configs import ARMS, EXPERIMENTS, PROFILES, make_specs
+from tamrm_experiments.args import EXPERIMENTS_DIR, parser
+from tamrm_experiments.configs import make_specs
 
 __all__ = ["main"]
-
-#: ``experiments/`` of the repository (defaults do not depend on the working directory).
-EXPERIMENTS_DIR = Path(__file__).resolve().parents[1]
-
-
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m tamrm_experiments",
-        description="Reproduce the TAMRM paper's experiments through the tamrm server.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    run = sub.add_parser("run", help="run experiments x arms x seeds (resumable)")
-    run.add_argument(
-        "--quick", action="store_true", help="1 seed, tiny budgets: a smoke test of the pipeline"
-    )
-    run.add_argument("--profile", choices=sorted(PROFILES), help="budget profile (default full)")
-    run.add_argument("--seeds", type=int, help="number of seeds 0..N-1 (default: the profile's)")
-    run.add_argument(
-        "--first-seed",
-        type=int,
-        default=0,
-        help="skip seeds below this one (e.g. to run seed 4 in a second invocation)",
-    )
-    run.add_argument(
-        "--jobs", type=int, default=os.cpu_count() or 1, help="parallel runs (default: all cores)"
-    )
-    run.add_argument(
-        "--out", type=Path, help="runs directory (default experiments/runs, or runs-quick)"
-    )
-    run.add_argument("--experiments", nargs="+", choices=sorted(EXPERIMENTS), help="subset")
-    run.add_argument("--arms", nargs="+", choices=list(ARMS), help="subset of arms")
-    run.add_argument(
-        "--reverse", action="store_true", help="run the grid from its end (a second invocation)"
-    )
-    run.add_argument("--address", help="use a running server instead of starting one")
-    run.add_argument("--no-progress", action="store_true", help="no progress bars")
-    run.add_argument("--dry-run", action="store_true", help="list the runs to do and exit")
-
-    rep = sub.add_parser("report", help="write the reproduction report from the raw runs")
-    rep.add_argument("--runs", type=Path, default=EXPERIMENTS_DIR / "runs")
-    rep.add_argument("--out", type=Path, default=EXPERIMENTS_DIR.parent / "docs/reproduction.md")
-    rep.add_argument(
-        "--plots", type=Path, help="plots directory (default: the --out path without .md)"
-    )
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point."""
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     if args.command == "run":
         from tamrm_experiments.run import is_complete, run_grid
 

@@ -17,11 +17,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from tamrm_experiments.args import parser
 from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs
 from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
+from tamrm_experiments.experiments.base import Metric
 from tamrm_experiments.stats import (
     Interval,
-    first_solved_episode,
     rolling_mean,
     t_interval,
     welch_interval,
@@ -62,71 +63,9 @@ def load_runs(runs_dir: Path) -> list[Run]:
 # -- metrics ---------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Metric:
-    """A per-run number; ``lower_is_better`` says which direction is an improvement."""
-
-    key: str
-    label: str
-    lower_is_better: bool
-    fmt: str = "{:,.0f}"
-
-
-METRICS: dict[str, list[Metric]] = {
-    "cartpole": [
-        Metric("mean_steps", "mean steps per episode, all episodes", False, "{:,.1f}"),
-        Metric("last100", "mean steps, last 100 episodes", False, "{:,.1f}"),
-        Metric("solved_ep", "episode solved (solved seeds only)", True),
-    ],
-    "mountaincar": [
-        Metric("total_steps", "total steps", True),
-        Metric("last20", "mean steps per episode, last 20 episodes", True, "{:,.1f}"),
-    ],
-    "maze": [
-        Metric("total_steps", "total steps", True),
-        Metric("last20", "mean steps per episode, last 20 episodes", True, "{:,.1f}"),
-    ],
-    "maze_modified": [
-        Metric("phase2_steps", "total steps after the switch", True),
-        Metric("phase1_steps", "total steps before the switch", True),
-        Metric("phase2_last10", "mean steps per episode, last 10 episodes", True, "{:,.1f}"),
-    ],
-}
-
-#: The headline metric of each experiment (the paper's).
-HEADLINE = {
-    "cartpole": "mean_steps",
-    "mountaincar": "total_steps",
-    "maze": "total_steps",
-    "maze_modified": "phase2_steps",
-}
-
-PAPER: dict[str, dict[str, str]] = {
-    "cartpole": {
-        "plain": "not solved in 1000 episodes",
-        "pbrs": "not solved in 1000 episodes",
-        "knn": "not run",
-        "tamrm": "solved at episode 455",
-    },
-    "mountaincar": {
-        "plain": "Fig. 6: more steps than TAMRM (no number given)",
-        "pbrs": "Fig. 6: most steps (no number given)",
-        "knn": "not run",
-        "tamrm": "Fig. 6: fewest steps (no number given)",
-    },
-    "maze": {
-        "plain": "137,599",
-        "pbrs": "1,433,215",
-        "knn": "not run",
-        "tamrm": "127,478",
-    },
-    "maze_modified": {
-        "plain": "Fig. 10: slower to adapt than TAMRM (no number given)",
-        "pbrs": "not shown",
-        "knn": "not run",
-        "tamrm": "Fig. 10: adapts faster (no number given)",
-    },
-}
+#: Kept for callers of the old names: each experiment's module is the one source.
+METRICS: dict[str, tuple[Metric, ...]] = {n: e.metrics for n, e in EXPERIMENTS.items()}
+HEADLINE: dict[str, str] = {n: e.headline for n, e in EXPERIMENTS.items()}
 
 
 def run_metrics(run: Run) -> dict[str, float]:
@@ -139,23 +78,11 @@ def run_metrics(run: Run) -> dict[str, float]:
         "last20": float(steps[-20:].mean()) if len(steps) else math.nan,
         "successes": float(df["success"].sum()) if len(df) else 0.0,
     }
-    if run.experiment == "cartpole":
-        solved = first_solved_episode(steps)
-        out["solved"] = 1.0 if solved is not None else 0.0
-        out["solved_ep"] = float(solved) if solved is not None else math.nan
-        out["mean_steps"] = float(steps.mean()) if len(steps) else math.nan
-        out["last100"] = float(steps[-100:].mean()) if len(steps) else math.nan
     # A run stopped by its step cap has an unfinished last episode: its steps count in the
     # totals (which are then lower bounds), in the phase it belongs to.
     unfinished = max(0.0, float(run.meta.get("total_steps", 0)) - out["total_steps"])
     out["total_steps"] += unfinished
-    if run.experiment == "maze_modified":
-        switch = run.budget.get("switch_after") or 0
-        phase2 = df[df["episode"] > switch]["steps"].to_numpy(dtype=np.float64)
-        out["phase1_steps"] = float(df[df["episode"] <= switch]["steps"].sum())
-        out["phase2_steps"] = float(phase2.sum())
-        out["phase2_steps" if len(df) >= switch else "phase1_steps"] += unfinished
-        out["phase2_last10"] = float(phase2[-10:].mean()) if len(phase2) else math.nan
+    out.update(EXPERIMENTS[run.experiment].extra_metrics(df, run.meta, unfinished))
     return out
 
 
@@ -244,7 +171,8 @@ def plot_experiment(exp_name: str, runs: list[Run], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    window = {"cartpole": 20}.get(exp_name, 10)
+    exp = EXPERIMENTS[exp_name]
+    window = exp.plot_window
     fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=110)
     colors = {"plain": "#444444", "pbrs": "#1f77b4", "knn": "#2ca02c", "tamrm": "#d62728"}
     lo_all, hi_all = math.inf, 0.0
@@ -252,26 +180,23 @@ def plot_experiment(exp_name: str, runs: list[Run], path: Path) -> None:
         arm_runs = [r for r in runs if r.arm == arm and len(r.df)]
         if not arm_runs:
             continue
-        x, mean, low, high = _curves(arm_runs, window, log=exp_name != "cartpole")
+        x, mean, low, high = _curves(arm_runs, window, log=exp.plot_log)
         ax.plot(x, mean, color=colors[arm], label=f"{ARMS[arm].label} (n={len(arm_runs)})", lw=1.4)
         ax.fill_between(x, low, high, color=colors[arm], alpha=0.18, lw=0)
         lo_all = min(lo_all, float(np.nanmin(mean)))
         hi_all = max(hi_all, float(np.nanmax(mean)))
-    exp = EXPERIMENTS[exp_name]
-    if exp_name == "cartpole":
-        ax.axhline(195, color="k", ls=":", lw=0.8)
-        ax.set_ylabel(f"steps kept up (mean of last {window} episodes)")
-    else:
+    exp.decorate(ax)
+    ax.set_ylabel(exp.plot_ylabel())
+    if exp.plot_log:
         ax.set_yscale("log")
         if hi_all > 0:
             # Bands of few seeds can be very wide: keep the means readable.
             ax.set_ylim(max(1.0, lo_all / 4), hi_all * 4)
-        ax.set_ylabel(f"steps per episode (mean of last {window})")
     switch = runs[0].budget.get("switch_after") if runs else None
     if switch:
         ax.axvline(switch + 0.5, color="k", ls="--", lw=0.8)
     ax.set_xlabel("episode")
-    how = "mean" if exp_name == "cartpole" else "geometric mean"
+    how = "geometric mean" if exp.plot_log else "mean"
     ax.set_title(f"{exp.title}\n{how} over seeds, band = 95% t-interval", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
@@ -302,15 +227,13 @@ def _requested(runs_dir: Path) -> list[tuple[str, str, int]]:
     order: each invocation's recorded command line parsed as the ``run`` command does."""
     import shlex
 
-    from tamrm_experiments.cli import _parser
-
     keys: dict[tuple[str, str, int], None] = {}
     for inv in _invocations(runs_dir):
         argv = shlex.split(inv.get("command", ""))
         if "tamrm_experiments" not in argv:
             continue
         try:
-            args = _parser().parse_args(argv[argv.index("tamrm_experiments") + 1 :])
+            args = parser().parse_args(argv[argv.index("tamrm_experiments") + 1 :])
         except SystemExit:  # a command line this version cannot parse
             continue
         if args.command != "run":
@@ -407,12 +330,8 @@ def _experiment_section(
             "the numbers.",
         ]
     lines.append("")
-    mlist = METRICS[exp_name]
-    head = ["arm", "seeds", "paper"]
-    if exp_name == "cartpole":
-        head.append("seeds solved")
-    else:
-        head.append("seeds stopped by the step cap")
+    mlist = exp.metrics
+    head = ["arm", "seeds", "paper", exp.status_column()]
     head += [m.label for m in mlist]
     any_censored = any(censored.values())
     if any_censored:
@@ -423,11 +342,7 @@ def _experiment_section(
         ms = metrics[arm]
         if not ms:
             continue
-        row = [ARMS[arm].label, str(len(ms)), PAPER[exp_name][arm]]
-        if exp_name == "cartpole":
-            row.append(f"{int(sum(m['solved'] for m in ms))}/{len(ms)}")
-        else:
-            row.append(f"{censored[arm]}/{len(ms)}")
+        row = [ARMS[arm].label, str(len(ms)), exp.paper[arm], exp.status_cell(ms, censored[arm])]
         for m in mlist:
             iv = t_interval([x[m.key] for x in ms])
             cell = _fmt_interval(iv, m.fmt)
@@ -448,7 +363,7 @@ def _experiment_section(
         )
     )
     lines.append("")
-    head_metric = next(m for m in mlist if m.key == HEADLINE[exp_name])
+    head_metric = next(m for m in mlist if m.key == exp.headline)
     plain = [m[head_metric.key] for m in metrics["plain"]]
     comps: dict[str, Comparison] = {}
     if plain:
@@ -477,7 +392,6 @@ def _agreement(exp_name: str, result: dict[str, Any]) -> str:
         return f"- **{EXPERIMENTS[exp_name].title}**: no data."
     comps: dict[str, Comparison] = result["comparisons"]
     metrics = result["metrics"]
-    title = EXPERIMENTS[exp_name].title
 
     def verdict(arm: str) -> str:
         c = comps.get(arm)
@@ -489,47 +403,7 @@ def _agreement(exp_name: str, result: dict[str, Any]) -> str:
             None: "not distinguishable from plain",
         }[c.better]
 
-    if exp_name == "cartpole":
-        solved = {
-            a: (int(sum(m["solved"] for m in ms)), len(ms)) for a, ms in metrics.items() if ms
-        }
-        s = ", ".join(f"{ARMS[a].label} {k}/{n}" for a, (k, n) in solved.items())
-        paper_ok = (
-            solved.get("tamrm", (0, 1))[0] > 0
-            and solved.get("plain", (0, 1))[0] == 0
-            and solved.get("pbrs", (0, 1))[0] == 0
-        )
-        tam = comps.get("tamrm")
-        if paper_ok and tam is not None and tam.better:
-            agree = "reproduced"
-        elif tam is not None and tam.better is False:
-            agree = "contradicted (TAMRM is worse than plain)"
-        elif solved.get("plain", (0, 1))[0] > 0 and solved.get("tamrm", (0, 1))[0] == 0:
-            agree = "contradicted (plain solves, TAMRM does not)"
-        else:
-            agree = "not reproduced"
-        return (
-            f"- **{title}**: seeds solved: {s}. TAMRM is {verdict('tamrm')} on mean steps per "
-            f"episode; PBRS only {verdict('pbrs')}; kNN only {verdict('knn')}. The paper's claim "
-            f"(TAMRM solves, plain and PBRS do not): {agree}."
-        )
-    tam = comps.get("tamrm")
-    claim_map = {
-        "mountaincar": "TAMRM needs fewer steps than plain DQN and DQN + PBRS",
-        "maze": "TAMRM needs fewer steps than plain DQN (-7%), PBRS about 10x more",
-        "maze_modified": "TAMRM with a fresh pool adapts to the new start faster than plain DQN",
-    }
-    claim = claim_map[exp_name]
-    agree = _claim_word(tam.better if tam is not None else None)
-    extra = ""
-    if exp_name in ("mountaincar", "maze"):
-        p = comps.get("pbrs")
-        if p is not None:
-            extra = f" PBRS only is {verdict('pbrs')}."
-    return (
-        f"- **{title}**: TAMRM is {verdict('tamrm')}; kNN only is {verdict('knn')}.{extra} "
-        f"The paper's claim ({claim}): {agree}."
-    )
+    return EXPERIMENTS[exp_name].agreement(comps, metrics, verdict)
 
 
 def _claims(results: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
@@ -544,41 +418,16 @@ def _claims(results: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
     for exp_name, res in results.items():
         if not res:
             continue
+        exp = EXPERIMENTS[exp_name]
         comps: dict[str, Comparison] = res["comparisons"]
-        title = EXPERIMENTS[exp_name].title.split(" (")[0]
         tam, pbrs = comps.get("tamrm"), comps.get("pbrs")
-        if exp_name == "cartpole":
-            ms = res["metrics"]
-            solved = {a: int(sum(m["solved"] for m in v)) for a, v in ms.items() if v}
-            n = {a: len(v) for a, v in ms.items() if v}
-            out.append(
-                (
-                    f"{title}: TAMRM solves (paper: episode 455) while plain A2C does not "
-                    f"(we: TAMRM {solved.get('tamrm', 0)}/{n.get('tamrm', 0)} seeds, plain "
-                    f"{solved.get('plain', 0)}/{n.get('plain', 0)})",
-                    "reproduced"
-                    if solved.get("tamrm", 0) > 0 and solved.get("plain", 0) == 0
-                    else (
-                        "contradicted"
-                        if solved.get("plain", 0) >= solved.get("tamrm", 0)
-                        and solved.get("plain", 0) > 0
-                        else "undecided"
-                    ),
-                )
-            )
+        out += exp.extra_claims(res["metrics"])
         if tam is not None:
-            what = {
-                "cartpole": "TAMRM learns faster than plain A2C (mean steps per episode)",
-                "mountaincar": "TAMRM needs fewer steps than plain DQN",
-                "maze": "TAMRM needs fewer steps than plain DQN",
-                "maze_modified": "after the start moves, TAMRM (fresh pool) needs fewer "
-                "steps than plain DQN",
-            }[exp_name]
-            out.append((f"{title}: {what}", cat(tam.better, True)))
-        if pbrs is not None and exp_name in ("cartpole", "mountaincar", "maze"):
+            out.append((f"{exp.short}: {exp.claim_check}", cat(tam.better, True)))
+        if pbrs is not None and exp.pbrs_claim:
             out.append(
                 (
-                    f"{title}: PBRS alone does not help (is worse than plain)",
+                    f"{exp.short}: PBRS alone does not help (is worse than plain)",
                     cat(pbrs.better, False),
                 )
             )
@@ -662,14 +511,6 @@ def _answer(results: dict[str, dict[str, Any]], runs: list[Run]) -> list[str]:
         )
     lines.append("")
     return lines
-
-
-def _claim_word(better: bool | None) -> str:
-    return {
-        True: "reproduced (TAMRM significantly better than plain)",
-        False: "contradicted (TAMRM significantly worse than plain)",
-        None: "not reproduced (no difference detectable at 95% with these seeds)",
-    }[better]
 
 
 def _diagnostics(runs: list[Run]) -> list[str]:

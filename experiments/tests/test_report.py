@@ -112,3 +112,24 @@ def test_incomplete_grid_lists_only_runs_some_invocation_asked_for(tmp_path):
     assert "**Incomplete grid**: 1 of 5 runs" in text
     assert "maze/plain/seed1" in text
     assert "maze/knn/seed1" not in text
+
+
+def test_report_does_not_import_the_cli():
+    import subprocess
+    import sys
+
+    code = "import sys, tamrm_experiments.report; print('tamrm_experiments.cli' in sys.modules)"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
+    assert out.strip() == "False"
+
+
+def test_each_experiment_module_defines_its_table_and_budgets():
+    from tamrm_experiments.configs import EXPERIMENTS, PROFILES
+
+    for name, exp in EXPERIMENTS.items():
+        assert exp.headline in {m.key for m in exp.metrics}, name
+        assert set(exp.paper) == set(ARMS), name
+        for profile in PROFILES.values():
+            assert profile.budgets[name] == exp.budgets[profile.name]

@@ -1,0 +1,195 @@
+"""What every experiment module defines: its setup, budgets, metrics, plot and claims.
+
+The report (``tamrm_experiments.report``) is generic: everything that differs between the
+paper's experiments lives in one :class:`ExperimentDef` subclass per experiment, in this
+package (``cartpole.py``, ``mountaincar.py``, ``maze.py``, ``maze_modified.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["ARMS", "DQN_COMMON", "Arm", "Budget", "ExperimentDef", "Metric", "claim_word"]
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm: which of the two shaping terms is switched on."""
+
+    name: str
+    label: str
+    knn: bool
+    potential: bool
+
+
+ARMS: dict[str, Arm] = {
+    arm.name: arm
+    for arm in (
+        Arm("plain", "plain (no shaping)", knn=False, potential=False),
+        Arm("pbrs", "PBRS only (alpha = 0)", knn=False, potential=True),
+        Arm("knn", "kNN only (beta = 0)", knn=True, potential=False),
+        Arm("tamrm", "TAMRM (kNN + PBRS)", knn=True, potential=True),
+    )
+}
+
+DQN_COMMON: dict[str, Any] = {
+    # Paper: fixed epsilon 0.1 (the brief), "decay rate 0.9" read as the discount gamma
+    # (the reward_decay of the tutorial DQN code the paper's Tkinter maze comes from).
+    "exploration_initial_eps": 0.1,
+    "exploration_final_eps": 0.1,
+    "exploration_fraction": 1.0,
+    "gamma": 0.9,
+    # Paper silent: SB3 defaults, except the target network update (SB3's default of
+    # 10 000 steps is longer than many whole runs here) and an earlier learning start.
+    "batch_size": 32,
+    "learning_starts": 200,
+    "train_freq": 4,
+    "gradient_steps": 1,
+    "target_update_interval": 200,
+}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Per-experiment budget of a profile (may be smaller than the paper's)."""
+
+    episodes: int
+    max_episode_steps: int
+    #: Safety cap on a run's total environment steps: a run reaching it stops early and
+    #: is reported as censored (its totals are lower bounds).
+    max_total_steps: int
+    switch_after: int | None = None
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A per-run number; ``lower_is_better`` says which direction is an improvement."""
+
+    key: str
+    label: str
+    lower_is_better: bool
+    fmt: str = "{:,.0f}"
+
+
+@dataclass(frozen=True)
+class ExperimentDef:
+    """One of the paper's experiments.
+
+    Attributes:
+        name: Short id (directory name of its runs).
+        title: Human title.
+        env: Environment factory key (see ``run.make_env``).
+        algo: ``"a2c"`` or ``"dqn"`` (Stable-Baselines3).
+        algo_kwargs: Keyword arguments of the SB3 algorithm (besides policy, env, seed).
+        tamrm: Task configuration (pool_capacity, k, alpha, beta, gamma, ...) of the TAMRM
+            arm; the other arms zero alpha and/or beta.
+        episodes: The paper's episode budget.
+        max_episode_steps: The per-episode step cap.
+        budgets: This experiment's budget in each profile (``full``, ``paper``, ``quick``).
+        switch_after: Modified maze: episodes after which the start moves and the
+            shaping arms switch to a fresh task (pool).
+        score_from_info: Send ``info["episode_score"]`` as the episode score.
+    """
+
+    name: str
+    title: str
+    env: str
+    algo: str
+    algo_kwargs: dict[str, Any]
+    tamrm: dict[str, Any]
+    episodes: int
+    max_episode_steps: int
+    budgets: dict[str, Budget] = field(default_factory=dict)
+    switch_after: int | None = None
+    score_from_info: bool = False
+
+    # -- what the report needs; subclasses override ------------------------------------
+
+    #: The metrics of the experiment's table (the headline is ``headline``).
+    metrics: ClassVar[tuple[Metric, ...]] = (
+        Metric("total_steps", "total steps", True),
+        Metric("last20", "mean steps per episode, last 20 episodes", True, "{:,.1f}"),
+    )
+    #: The key of the paper's headline metric.
+    headline: ClassVar[str] = "total_steps"
+    #: The paper's number (or words) per arm.
+    paper: ClassVar[dict[str, str]] = {}
+    #: The paper's claim about TAMRM, for the summary (``"TAMRM needs fewer ..."``).
+    claim: ClassVar[str] = ""
+    #: The same claim, as a statement checked in the closing note.
+    claim_check: ClassVar[str] = ""
+    #: Whether the paper claims that PBRS alone does not help here.
+    pbrs_claim: ClassVar[bool] = False
+    #: Plot: episodes of the trailing mean.
+    plot_window: ClassVar[int] = 10
+
+    @property
+    def short(self) -> str:
+        """The title without its parenthesis ("Cart pole")."""
+        return self.title.split(" (")[0]
+
+    def extra_metrics(self, df: pd.DataFrame, meta: dict[str, Any], unfinished: float) -> dict:
+        """Metrics beyond the common ones (``total_steps``, ``last20``, ``episodes``).
+
+        ``unfinished`` is the step count of an unfinished last episode of a run stopped by
+        its step cap (already added to ``total_steps``).
+        """
+        return {}
+
+    def status_column(self) -> str:
+        """Header of the per-arm status column of the table."""
+        return "seeds stopped by the step cap"
+
+    def status_cell(self, metrics: list[dict[str, float]], censored: int) -> str:
+        """The status cell of one arm."""
+        return f"{censored}/{len(metrics)}"
+
+    def agreement(self, comps: dict[str, Any], metrics: dict[str, list], verdict: Any) -> str:
+        """One sentence: does our measurement agree with the paper's claim?
+
+        ``verdict(arm)`` words an arm's comparison with plain.
+        """
+        tam = comps.get("tamrm")
+        agree = claim_word(tam.better if tam is not None else None)
+        extra = ""
+        if self.pbrs_claim and comps.get("pbrs") is not None:
+            extra = f" PBRS only is {verdict('pbrs')}."
+        return (
+            f"- **{self.title}**: TAMRM is {verdict('tamrm')}; kNN only is {verdict('knn')}."
+            f"{extra} The paper's claim ({self.claim}): {agree}."
+        )
+
+    def extra_claims(self, metrics: dict[str, list]) -> list[tuple[str, str]]:
+        """Claims beyond "TAMRM better" and "PBRS not better": (statement, verdict)."""
+        return []
+
+    # -- plot --------------------------------------------------------------------------
+
+    #: Plot the steps per episode on a log axis (geometric mean over seeds).
+    plot_log: ClassVar[bool] = True
+
+    def plot_ylabel(self) -> str:
+        """The y label of the learning-curve plot."""
+        return f"steps per episode (mean of last {self.plot_window})"
+
+    def decorate(self, ax: Any) -> None:
+        """Add experiment-specific lines to the plot (e.g. the solved threshold)."""
+
+
+def mean_or_nan(x: np.ndarray) -> float:
+    """Mean of ``x``, ``nan`` if empty."""
+    return float(x.mean()) if len(x) else math.nan
+
+
+def claim_word(better: bool | None) -> str:
+    """Our verdict on a claim that TAMRM is better than plain, in words."""
+    return {
+        True: "reproduced (TAMRM significantly better than plain)",
+        False: "contradicted (TAMRM significantly worse than plain)",
+        None: "not reproduced (no difference detectable at 95% with these seeds)",
+    }[better]
