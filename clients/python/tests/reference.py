@@ -30,6 +30,7 @@ class RefConfig:
     beta: float = 0.8
     gamma: float = 0.99
     max_trajectory_len: int = 100000
+    gate_potential: bool = False
 
     @classmethod
     def of(cls, config: object) -> RefConfig:
@@ -150,6 +151,8 @@ class RefStream:
         t = len(ep) - 1
         active, r = knn_reward(self.pool.trajectories, ep, t, cfg)
         f = potential(cfg, value, next_value, terminated)
+        if cfg.gate_potential and not active:
+            f = 0.0  # SPEC v1.1 §4: with gating, F counts only where the kNN term is active
         self.returns[env] += reward
         out = {
             "reward": reward + cfg.alpha * r + cfg.beta * f,

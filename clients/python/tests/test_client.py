@@ -19,6 +19,7 @@ DEFAULTS = {
     "beta": 0.8,
     "gamma": 0.99,
     "max_trajectory_len": 100000,
+    "gate_potential": False,
 }
 
 
@@ -57,6 +58,7 @@ def test_create_task_all_fields(client: tamrm.Client, task_id: str) -> None:
         "beta": 0.0,
         "gamma": 1.0,
         "max_trajectory_len": 50,
+        "gate_potential": True,
     }
     task = client.create_task(task_id, **kwargs)  # type: ignore[arg-type]
     for name, value in kwargs.items():
@@ -73,6 +75,7 @@ def test_create_task_all_fields(client: tamrm.Client, task_id: str) -> None:
         "beta",
         "gamma",
         "max_trajectory_len",
+        "gate_potential",
     }
 
 

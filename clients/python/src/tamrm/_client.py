@@ -107,12 +107,14 @@ class Client:
         beta: float | None = None,
         gamma: float | None = None,
         max_trajectory_len: int | None = None,
+        gate_potential: bool | None = None,
     ) -> Task:
         """Create a task; arguments left ``None`` take the server's defaults (SPEC §1.1).
 
         Exactly one of ``num_actions`` (discrete actions ``0..n-1``) and ``action_dim``
         (continuous action vectors) must be given. Creating an existing task with the same
-        resolved configuration returns it unchanged.
+        resolved configuration returns it unchanged. ``gate_potential=True`` makes the
+        potential term count only on steps where the kNN term is active (SPEC v1.1 §4).
 
         Returns:
             The task with its resolved configuration.
@@ -133,6 +135,7 @@ class Client:
                 "beta": beta,
                 "gamma": gamma,
                 "max_trajectory_len": max_trajectory_len,
+                "gate_potential": gate_potential,
             }
         )
         msg = self._call(

@@ -34,9 +34,11 @@ CONFIG_FIELDS: tuple[str, ...] = (
     "beta",
     "gamma",
     "max_trajectory_len",
+    "gate_potential",
 )
-_INT_FIELDS = frozenset(CONFIG_FIELDS) - {"alpha", "beta", "gamma"}
 _FLOAT_FIELDS = frozenset({"alpha", "beta", "gamma"})
+_BOOL_FIELDS = frozenset({"gate_potential"})
+_INT_FIELDS = frozenset(CONFIG_FIELDS) - _FLOAT_FIELDS - _BOOL_FIELDS
 _UINT32_MAX = 2**32 - 1
 
 
@@ -55,6 +57,8 @@ class TaskConfig:
         beta: Weight of the potential term F.
         gamma: Discount in F = gamma * V(s') - V(s).
         max_trajectory_len: Most actions recorded per episode.
+        gate_potential: Whether the potential term F counts only on steps where the kNN
+            term is active (SPEC v1.1 §4; ``False`` from servers that predate it).
     """
 
     num_actions: int
@@ -67,6 +71,7 @@ class TaskConfig:
     beta: float
     gamma: float
     max_trajectory_len: int
+    gate_potential: bool = False
 
     @property
     def discrete(self) -> bool:
@@ -86,6 +91,7 @@ class TaskConfig:
             beta=float(msg.beta),
             gamma=float(msg.gamma),
             max_trajectory_len=int(msg.max_trajectory_len),
+            gate_potential=bool(msg.gate_potential),
         )
 
 
@@ -287,6 +293,10 @@ def config_to_pb(values: Mapping[str, Any]) -> pb.TaskConfig:
             if not 0 <= ivalue <= _UINT32_MAX:
                 raise ValueError(f"{name} must be in 0..{_UINT32_MAX}, got {ivalue}")
             setattr(msg, name, ivalue)
+        elif name in _BOOL_FIELDS:
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{name} must be a bool, got {type(value).__name__}")
+            setattr(msg, name, bool(value))
         else:
             if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
                 raise TypeError(f"{name} must be a float, got {type(value).__name__}")

@@ -248,6 +248,7 @@ class Client:
         beta: float | None = None,
         gamma: float | None = None,
         max_trajectory_len: int | None = None,
+        gate_potential: bool | None = None,
     ) -> Task:
         """Create a task; see :meth:`tamrm.Client.create_task`."""
         config = config_to_pb(
@@ -262,6 +263,7 @@ class Client:
                 "beta": beta,
                 "gamma": gamma,
                 "max_trajectory_len": max_trajectory_len,
+                "gate_potential": gate_potential,
             }
         )
         msg = await self._call(

@@ -59,6 +59,7 @@ class TaskConfig(_message.Message):
     BETA_FIELD_NUMBER: _builtins.int
     GAMMA_FIELD_NUMBER: _builtins.int
     MAX_TRAJECTORY_LEN_FIELD_NUMBER: _builtins.int
+    GATE_POTENTIAL_FIELD_NUMBER: _builtins.int
     num_actions: _builtins.int
     """Discrete action space size n >= 1; actions are integers 0..n-1, encoded one-hot, so
     the per-step distance between two actions is 0 (equal) or 2 (different).
@@ -89,6 +90,11 @@ class TaskConfig(_message.Message):
     """Most actions recorded per episode (longer episodes are stored truncated), >= 1.
     Default 100000.
     """
+    gate_potential: _builtins.bool
+    """(v1.1) When true, the potential term F counts only on steps where the kNN term is
+    active (`knn_active`), as in the paper's authors' code; elsewhere F = 0 whatever values
+    were sent. Default false.
+    """
     def __init__(
         self,
         *,
@@ -102,10 +108,11 @@ class TaskConfig(_message.Message):
         beta: _builtins.float | None = ...,
         gamma: _builtins.float | None = ...,
         max_trajectory_len: _builtins.int | None = ...,
+        gate_potential: _builtins.bool | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "action_dim", b"action_dim", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "num_actions", b"num_actions", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "action_dim", b"action_dim", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "num_actions", b"num_actions", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015
@@ -113,6 +120,8 @@ class TaskConfig(_message.Message):
     _WhichOneofArgType__beta: _TypeAlias = _typing.Literal["_beta", b"_beta"]  # noqa: Y015
     _WhichOneofReturnType__gamma: _TypeAlias = _typing.Literal["gamma"]  # noqa: Y015
     _WhichOneofArgType__gamma: _TypeAlias = _typing.Literal["_gamma", b"_gamma"]  # noqa: Y015
+    _WhichOneofReturnType__gate_potential: _TypeAlias = _typing.Literal["gate_potential"]  # noqa: Y015
+    _WhichOneofArgType__gate_potential: _TypeAlias = _typing.Literal["_gate_potential", b"_gate_potential"]  # noqa: Y015
     _WhichOneofReturnType__k: _TypeAlias = _typing.Literal["k"]  # noqa: Y015
     _WhichOneofArgType__k: _TypeAlias = _typing.Literal["_k", b"_k"]  # noqa: Y015
     _WhichOneofReturnType__max_trajectory_len: _TypeAlias = _typing.Literal["max_trajectory_len"]  # noqa: Y015
@@ -129,6 +138,8 @@ class TaskConfig(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__beta) -> _WhichOneofReturnType__beta | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__gamma) -> _WhichOneofReturnType__gamma | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__gate_potential) -> _WhichOneofReturnType__gate_potential | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__k) -> _WhichOneofReturnType__k | None: ...
     @_typing.overload
@@ -592,6 +603,7 @@ class StepBatch(_message.Message):
     Q_VALUES_FIELD_NUMBER: _builtins.int
     NEXT_Q_VALUES_FIELD_NUMBER: _builtins.int
     EPISODE_SCORES_FIELD_NUMBER: _builtins.int
+    ABANDON_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def env_ids(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
         """The environment of each entry, each < num_envs. Empty means entry i is env i
@@ -646,6 +658,14 @@ class StepBatch(_message.Message):
         Entries without a score use the sum of the episode's environment rewards. Finite.
         """
 
+    @_builtins.property
+    def abandon(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """(v1.1) Environments whose current episode is dropped before this batch's entries are
+        processed, without updating the pool (the environment crashed, or was reset by hand).
+        Each < num_envs, none listed twice. The environment's next entry is step t = 0 of a new
+        episode.
+        """
+
     def __init__(
         self,
         *,
@@ -660,10 +680,11 @@ class StepBatch(_message.Message):
         q_values: _abc.Iterable[_builtins.float] | None = ...,
         next_q_values: _abc.Iterable[_builtins.float] | None = ...,
         episode_scores: _abc.Mapping[_builtins.int, _builtins.float] | None = ...,
+        abandon: _abc.Iterable[_builtins.int] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["action_vectors", b"action_vectors", "actions", b"actions", "env_ids", b"env_ids", "episode_scores", b"episode_scores", "next_q_values", b"next_q_values", "next_values", b"next_values", "q_values", b"q_values", "rewards", b"rewards", "terminated", b"terminated", "truncated", b"truncated", "values", b"values"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["abandon", b"abandon", "action_vectors", b"action_vectors", "actions", b"actions", "env_ids", b"env_ids", "episode_scores", b"episode_scores", "next_q_values", b"next_q_values", "next_values", b"next_values", "q_values", b"q_values", "rewards", b"rewards", "terminated", b"terminated", "truncated", b"truncated", "values", b"values"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -1,0 +1,84 @@
+"""Every ``TaskConfig`` field of the proto is in the client: create_task, TaskConfig, docs.
+
+These tests fail when a field is added to ``proto/tamrm/v1/shaping.proto``'s ``TaskConfig``
+(and the stubs regenerated) without adding it to the client.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import typing
+from pathlib import Path
+
+import pytest
+from google.protobuf.descriptor import FieldDescriptor
+from reference import RefConfig
+
+import tamrm
+import tamrm.aio
+from tamrm._proto.tamrm.v1 import shaping_pb2
+from tamrm._types import config_to_pb
+
+PROTO_FIELDS = [f.name for f in shaping_pb2.TaskConfig.DESCRIPTOR.fields]
+# The Python annotation each proto scalar type maps to.
+PY_TYPES = {
+    FieldDescriptor.TYPE_UINT32: int,
+    FieldDescriptor.TYPE_DOUBLE: float,
+    FieldDescriptor.TYPE_BOOL: bool,
+}
+DOCS = Path(__file__).resolve().parents[3] / "docs" / "python.md"
+
+
+def test_proto_has_the_fields_we_know_of() -> None:
+    # The comparison below is not vacuous.
+    assert len(PROTO_FIELDS) >= 11
+    assert "gate_potential" in PROTO_FIELDS
+
+
+def test_config_fields_constant() -> None:
+    assert list(tamrm.CONFIG_FIELDS) == PROTO_FIELDS
+
+
+@pytest.mark.parametrize("cls", [tamrm.Client, tamrm.aio.Client], ids=["sync", "aio"])
+def test_create_task_takes_every_field(cls: type) -> None:
+    params = inspect.signature(cls.create_task).parameters
+    keywords = [n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    assert keywords == PROTO_FIELDS
+    hints = typing.get_type_hints(cls.create_task)
+    for field in shaping_pb2.TaskConfig.DESCRIPTOR.fields:
+        assert hints[field.name] == PY_TYPES[field.type] | None, field.name
+        assert params[field.name].default is None, field.name
+
+
+def test_task_config_dataclass_has_every_field() -> None:
+    fields = dataclasses.fields(tamrm.TaskConfig)
+    assert [f.name for f in fields] == PROTO_FIELDS
+    hints = typing.get_type_hints(tamrm.TaskConfig)
+    for field in shaping_pb2.TaskConfig.DESCRIPTOR.fields:
+        assert hints[field.name] is PY_TYPES[field.type], field.name
+
+
+def _sample(field: FieldDescriptor) -> object:
+    return {int: 7, float: 0.25, bool: True}[PY_TYPES[field.type]]
+
+
+def test_every_field_is_sent_and_read_back() -> None:
+    """config_to_pb sets every field; TaskConfig._from_pb reads every field."""
+    values = {f.name: _sample(f) for f in shaping_pb2.TaskConfig.DESCRIPTOR.fields}
+    msg = config_to_pb(values)
+    for name, value in values.items():
+        assert getattr(msg, name) == value, name
+    config = tamrm.TaskConfig._from_pb(msg)
+    assert dataclasses.asdict(config) == values
+
+
+def test_reference_config_has_every_field() -> None:
+    assert list(RefConfig.__dataclass_fields__) == PROTO_FIELDS
+
+
+def test_docs_list_every_field() -> None:
+    text = DOCS.read_text(encoding="utf-8")
+    line = next(ln for ln in text.splitlines() if ln.startswith("| `create_task("))
+    for name in PROTO_FIELDS:
+        assert f"{name}=" in line, name
