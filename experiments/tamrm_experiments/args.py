@@ -7,7 +7,7 @@ import argparse
 import os
 from pathlib import Path
 
-from tamrm_experiments.configs import ARMS, EXPERIMENTS, PROFILES
+from tamrm_experiments.configs import ARMS, EXPERIMENTS, FIDELITIES, PROFILES, all_variants
 
 __all__ = ["EXPERIMENTS_DIR", "parser"]
 
@@ -27,7 +27,11 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--quick", action="store_true", help="1 seed, tiny budgets: a smoke test of the pipeline"
     )
-    run.add_argument("--profile", choices=sorted(PROFILES), help="budget profile (default full)")
+    run.add_argument(
+        "--profile",
+        choices=sorted(PROFILES),
+        help="budget profile (default paper: the paper's episode budgets)",
+    )
     run.add_argument("--seeds", type=int, help="number of seeds 0..N-1 (default: the profile's)")
     run.add_argument(
         "--first-seed",
@@ -43,6 +47,15 @@ def parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--experiments", nargs="+", choices=sorted(EXPERIMENTS), help="subset")
     run.add_argument("--arms", nargs="+", choices=list(ARMS), help="subset of arms")
+    run.add_argument(
+        "--fidelity",
+        nargs="+",
+        choices=list(FIDELITIES),
+        help="subset: clean (SB3 learners) and/or authors (the authors' learners and settings)",
+    )
+    run.add_argument(
+        "--variants", nargs="+", choices=all_variants(), help="subset of variants by name"
+    )
     run.add_argument(
         "--reverse", action="store_true", help="run the grid from its end (a second invocation)"
     )

@@ -17,10 +17,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "run":
         from tamrm_experiments.run import is_complete, run_grid
 
-        profile = args.profile or ("quick" if args.quick else "full")
+        profile = args.profile or ("quick" if args.quick else "paper")
         default_out = "runs-quick" if profile == "quick" else "runs"
         out = args.out or EXPERIMENTS_DIR / default_out
-        specs = make_specs(profile, args.seeds, args.experiments, args.arms, args.first_seed)
+        specs = make_specs(
+            profile,
+            args.seeds,
+            args.experiments,
+            args.arms,
+            args.first_seed,
+            getattr(args, "fidelity", None),
+            getattr(args, "variants", None),
+        )
         if args.reverse:
             specs.reverse()
         if args.dry_run:

@@ -11,19 +11,23 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from tamrm_experiments.experiments import EXPERIMENTS
-from tamrm_experiments.experiments.base import ARMS, Arm, Budget
+from tamrm_experiments.experiments.base import ARMS, FIDELITIES, Arm, Budget, Variant
 from tamrm_experiments.experiments.base import ExperimentDef as Experiment
 
 __all__ = [
     "ARMS",
     "EXPERIMENTS",
+    "FIDELITIES",
     "PROFILES",
     "Arm",
     "Budget",
     "Experiment",
     "RunSpec",
+    "Variant",
+    "all_variants",
     "arm_weights",
     "make_specs",
+    "task_config",
 ]
 
 
@@ -49,42 +53,85 @@ PROFILES: dict[str, Profile] = {
 }
 
 
-def arm_weights(experiment: Experiment, arm: Arm) -> tuple[float, float]:
-    """Return (alpha, beta) of ``arm`` in ``experiment``."""
+def task_config(experiment: Experiment, variant: Variant, arm: Arm) -> dict[str, Any]:
+    """The ``create_task`` settings of ``arm`` in ``variant`` of ``experiment``.
+
+    Clean: the experiment's TAMRM configuration (SPEC defaults where it is silent), alpha
+    and/or beta zeroed by the arm, ``gate_potential`` from the variant. Authors: their
+    configuration, their PBRS-only line (``pbrs_beta``, every step: ungated) for the PBRS
+    arm, and the potential term gated to the kNN window (their code adds both terms only
+    there) in the TAMRM and kNN-only arms.
+    """
+    if variant.fidelity == "authors":
+        base = dict(variant.settings["tamrm"])
+        # Their code adds its terms only with a full pool.
+        base["min_pool_size"] = base["pool_capacity"]
+        alpha = float(base["alpha"]) if arm.knn else 0.0
+        if arm.potential and not arm.knn:
+            beta, gate = float(variant.settings["pbrs_beta"]), False
+        else:
+            beta, gate = (float(base["beta"]) if arm.potential else 0.0), True
+        return {**base, "alpha": alpha, "beta": beta, "gate_potential": gate}
     alpha = float(experiment.tamrm["alpha"]) if arm.knn else 0.0
     beta = float(experiment.tamrm["beta"]) if arm.potential else 0.0
-    return alpha, beta
+    gate = bool(variant.settings.get("gate_potential", False))
+    return {**experiment.tamrm, "alpha": alpha, "beta": beta, "gate_potential": gate}
+
+
+def arm_weights(experiment: Experiment, arm: Arm, variant: str = "clean") -> tuple[float, float]:
+    """Return (alpha, beta) of ``arm`` in ``experiment`` (and ``variant``)."""
+    cfg = task_config(experiment, experiment.variant(variant), arm)
+    return cfg["alpha"], cfg["beta"]
 
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run: (experiment, arm, seed) under a budget."""
+    """One run: (experiment, variant, arm, seed) under a budget."""
 
     experiment: str
     arm: str
     seed: int
     profile: str
     budget: Budget
+    variant: str = "clean"
+
+    @property
+    def fidelity(self) -> str:
+        """``"clean"`` or ``"authors"``."""
+        return EXPERIMENTS[self.experiment].variant(self.variant).fidelity
 
     @property
     def key(self) -> str:
-        """``experiment/arm/seedN``: the run's id and relative path stem."""
-        return f"{self.experiment}/{self.arm}/seed{self.seed}"
+        """``experiment/variant/arm/seedN``: the run's id and relative path stem."""
+        return f"{self.experiment}/{self.variant}/{self.arm}/seed{self.seed}"
+
+    def task_config(self) -> dict[str, Any]:
+        """The run's ``create_task`` settings."""
+        exp = EXPERIMENTS[self.experiment]
+        return task_config(exp, exp.variant(self.variant), ARMS[self.arm])
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able description (stored next to the run's CSV)."""
         exp = EXPERIMENTS[self.experiment]
-        alpha, beta = arm_weights(exp, ARMS[self.arm])
-        return {
+        var = exp.variant(self.variant)
+        out: dict[str, Any] = {
             "experiment": self.experiment,
+            "fidelity": var.fidelity,
+            "variant": self.variant,
             "arm": self.arm,
             "seed": self.seed,
             "profile": self.profile,
             "budget": asdict(self.budget),
-            "algo": exp.algo,
-            "algo_kwargs": exp.algo_kwargs,
-            "task_config": {**exp.tamrm, "alpha": alpha, "beta": beta},
         }
+        if var.fidelity == "authors":
+            out["algo"] = var.settings["learner"]
+            out["variant_settings"] = var.settings
+        else:
+            out["algo"] = exp.algo
+            out["algo_kwargs"] = exp.algo_kwargs
+            out["variant_settings"] = var.settings
+        out["task_config"] = self.task_config()
+        return out
 
 
 def make_specs(
@@ -93,17 +140,31 @@ def make_specs(
     experiments: list[str] | None = None,
     arms: list[str] | None = None,
     first_seed: int = 0,
+    fidelities: list[str] | None = None,
+    variants: list[str] | None = None,
 ) -> list[RunSpec]:
-    """The run grid, seed-major (every experiment and arm of seed 0 first), so that a
-    partial run has whole seeds across arms."""
+    """The run grid, seed-major (every experiment, variant and arm of seed 0 first), so
+    that a partial run has whole seeds across arms. ``fidelities`` and ``variants`` select
+    variants (by fidelity, by name); ``None`` means all."""
     prof = PROFILES[profile]
     n = prof.seeds if seeds is None else seeds
     exps = experiments or list(EXPERIMENTS)
     arm_names = arms or list(ARMS)
     specs = []
     for seed in range(first_seed, n):
-        for exp in exps:
-            budget = prof.budgets[exp]
-            for arm in arm_names:
-                specs.append(RunSpec(exp, arm, seed, profile, budget))
+        for name in exps:
+            exp = EXPERIMENTS[name]
+            for var in exp.variants:
+                if fidelities and var.fidelity not in fidelities:
+                    continue
+                if variants and var.name not in variants:
+                    continue
+                budget = exp.budget(profile, var.name)
+                for arm in arm_names:
+                    specs.append(RunSpec(name, arm, seed, profile, budget, var.name))
     return specs
+
+
+def all_variants() -> list[str]:
+    """Every variant name of every experiment."""
+    return sorted({v.name for e in EXPERIMENTS.values() for v in e.variants})

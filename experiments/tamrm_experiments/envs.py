@@ -24,9 +24,13 @@ __all__ = [
     "MAZE_START",
     "MAZE_WALLS",
     "MazeEnv",
+    "OneHotCell",
     "PaperCartPoleReward",
     "make_cartpole",
+    "make_maze",
+    "make_maze_onehot",
     "make_mountain_car",
+    "maze_random_walk_steps",
     "maze_shortest_path",
 ]
 
@@ -193,3 +197,40 @@ def make_mountain_car(max_steps: int = 10_000) -> gym.Env[Any, Any]:
 def make_maze(max_steps: int = 10_000, switch_start_after: int | None = None) -> MazeEnv:
     """The maze (modified maze when ``switch_start_after`` is set)."""
     return MazeEnv(max_steps=max_steps, switch_start_after=switch_start_after)
+
+
+class OneHotCell(gym.ObservationWrapper[np.ndarray, int, np.ndarray]):
+    """The maze's observation as a one-hot vector of its 64 cells (index ``y * 8 + x``)."""
+
+    def __init__(self, env: gym.Env[np.ndarray, int]) -> None:
+        super().__init__(env)
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (MAZE_SIZE * MAZE_SIZE,), np.float32)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        """(x, y) -> one-hot."""
+        out = np.zeros(MAZE_SIZE * MAZE_SIZE, dtype=np.float32)
+        out[int(observation[1]) * MAZE_SIZE + int(observation[0])] = 1.0
+        return out
+
+
+def make_maze_onehot(max_steps: int = 10_000, switch_start_after: int | None = None) -> OneHotCell:
+    """The maze with a one-hot cell observation (the clean variant's learner input)."""
+    return OneHotCell(make_maze(max_steps, switch_start_after))
+
+
+def maze_random_walk_steps(start: tuple[int, int] = MAZE_START) -> float:
+    """Expected steps of a uniformly random walk from ``start`` to the goal (exact: the
+    hitting times solve ``E[c] = 1 + mean over the 4 moves of E[next cell]``)."""
+    cells = [(x, y) for y in range(MAZE_SIZE) for x in range(MAZE_SIZE) if _open((x, y))]
+    index = {c: i for i, c in enumerate(cells)}
+    n = len(cells)
+    a = np.eye(n)
+    b = np.ones(n)
+    for c, i in index.items():
+        if c == MAZE_GOAL:
+            b[i] = 0.0
+            continue
+        for dx, dy in MAZE_MOVES:
+            nxt = (c[0] + dx, c[1] + dy)
+            a[i, index[nxt if _open(nxt) else c]] -= 0.25
+    return float(np.linalg.solve(a, b)[index[start]])

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,12 +19,15 @@ import pandas as pd
 from tamrm_experiments.args import parser
 from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs
 from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
-from tamrm_experiments.experiments.base import Metric
+from tamrm_experiments.experiments.base import Claim, Metric
 from tamrm_experiments.stats import (
     Interval,
+    fisher_p,
+    holm,
     rolling_mean,
     t_interval,
     welch_interval,
+    welch_p,
 )
 
 __all__ = ["Run", "load_runs", "run_metrics", "write_report"]
@@ -40,6 +42,8 @@ class Run:
     seed: int
     meta: dict[str, Any]
     df: pd.DataFrame
+    variant: str = "clean"
+    fidelity: str = "clean"
 
     @property
     def budget(self) -> dict[str, Any]:
@@ -48,19 +52,30 @@ class Run:
 
 
 def load_runs(runs_dir: Path) -> list[Run]:
-    """Load every complete run under ``runs_dir``."""
+    """Load every complete run under ``runs_dir`` (any depth: ``<experiment>/<variant>/
+    <arm>/seedN``; runs of the first report, without a variant, count as ``clean``)."""
     runs = []
-    for meta_path in sorted(runs_dir.glob("*/*/seed*.json")):
-        meta = json.loads(meta_path.read_text())
+    for meta_path in sorted(runs_dir.rglob("seed*.json")):
+        try:
+            meta = json.loads(meta_path.read_text())
+        except ValueError:
+            continue
         csv_path = meta_path.with_suffix(".csv")
         if not meta.get("complete") or not csv_path.is_file():
             continue
         spec = meta["spec"]
-        runs.append(Run(spec["experiment"], spec["arm"], spec["seed"], meta, pd.read_csv(csv_path)))
+        runs.append(
+            Run(
+                spec["experiment"],
+                spec["arm"],
+                spec["seed"],
+                meta,
+                pd.read_csv(csv_path),
+                spec.get("variant", "clean"),
+                spec.get("fidelity", "clean"),
+            )
+        )
     return runs
-
-
-# -- metrics ---------------------------------------------------------------------------
 
 
 #: Kept for callers of the old names: each experiment's module is the one source.
@@ -164,7 +179,7 @@ def _curves(
     return np.arange(1, n + 1), mean, low, high
 
 
-def plot_experiment(exp_name: str, runs: list[Run], path: Path) -> None:
+def plot_experiment(exp_name: str, runs: list[Run], path: Path, title: str = "") -> None:
     """Learning curve (steps per episode) of every arm: mean over seeds with a 95% band."""
     import matplotlib
 
@@ -197,7 +212,7 @@ def plot_experiment(exp_name: str, runs: list[Run], path: Path) -> None:
         ax.axvline(switch + 0.5, color="k", ls="--", lw=0.8)
     ax.set_xlabel("episode")
     how = "geometric mean" if exp.plot_log else "mean"
-    ax.set_title(f"{exp.title}\n{how} over seeds, band = 95% t-interval", fontsize=10)
+    ax.set_title(f"{title or exp.title}\n{how} over seeds, band = 95% t-interval", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -222,12 +237,14 @@ def _invocations(runs_dir: Path) -> list[dict[str, Any]]:
     return out
 
 
-def _requested(runs_dir: Path) -> list[tuple[str, str, int]]:
-    """(experiment, arm, seed) of every run that some grid invocation asked for, in grid
-    order: each invocation's recorded command line parsed as the ``run`` command does."""
+def _requested(runs_dir: Path) -> list[tuple[str, str, str, int]]:
+    """(experiment, variant, arm, seed) of every run that some grid invocation asked for,
+    in grid order: each invocation's recorded command line parsed as the ``run`` command
+    does (a command line without ``--profile`` is read with the default of its time,
+    ``full``, if it has no ``--fidelity``/``--variants``: the first report's)."""
     import shlex
 
-    keys: dict[tuple[str, str, int], None] = {}
+    keys: dict[tuple[str, str, str, int], None] = {}
     for inv in _invocations(runs_dir):
         argv = shlex.split(inv.get("command", ""))
         if "tamrm_experiments" not in argv:
@@ -238,9 +255,17 @@ def _requested(runs_dir: Path) -> list[tuple[str, str, int]]:
             continue
         if args.command != "run":
             continue
-        profile = args.profile or ("quick" if args.quick else "full")
-        for spec in make_specs(profile, args.seeds, args.experiments, args.arms, args.first_seed):
-            keys[(spec.experiment, spec.arm, spec.seed)] = None
+        profile = args.profile or ("quick" if args.quick else "paper")
+        for spec in make_specs(
+            profile,
+            args.seeds,
+            args.experiments,
+            args.arms,
+            args.first_seed,
+            args.fidelity,
+            args.variants,
+        ):
+            keys[(spec.experiment, spec.variant, spec.arm, spec.seed)] = None
     return list(keys)
 
 
@@ -310,10 +335,12 @@ def _censoring_caveat(comp: Comparison, arm_censored: bool, plain_censored: bool
 
 
 def _experiment_section(
-    exp_name: str, runs: list[Run], plots_rel: str, plots_dir: Path
+    exp_name: str, runs: list[Run], plots_rel: str, plots_dir: Path, variant: str = "clean"
 ) -> tuple[list[str], dict[str, Any]]:
     exp = EXPERIMENTS[exp_name]
-    lines = [f"## {exp.title}", ""]
+    var = exp.variant(variant)
+    title = f"{exp.short}: {var.label}"
+    lines = [f"## {title}", ""]
     if not runs:
         return [*lines, "No finished runs.", ""], {}
     metrics = {arm: [] for arm in ARMS}  # type: dict[str, list[dict[str, float]]]
@@ -379,138 +406,11 @@ def _experiment_section(
             lines.append(f"- {ARMS[arm].label}: {comp.text}")
         lines.append("")
     lines += _diagnostics(runs)
-    png = plots_dir / f"{exp_name}.png"
-    plot_experiment(exp_name, runs, png)
-    lines.append(f"![{exp.title}]({plots_rel}/{exp_name}.png)")
+    png = plots_dir / f"{exp_name}-{variant}.png"
+    plot_experiment(exp_name, runs, png, title)
+    lines.append(f"![{title}]({plots_rel}/{png.name})")
     lines.append("")
     return lines, {"metrics": metrics, "comparisons": comps, "censored": censored}
-
-
-def _agreement(exp_name: str, result: dict[str, Any]) -> str:
-    """One sentence per experiment: does our measurement agree with the paper's claim?"""
-    if not result:
-        return f"- **{EXPERIMENTS[exp_name].title}**: no data."
-    comps: dict[str, Comparison] = result["comparisons"]
-    metrics = result["metrics"]
-
-    def verdict(arm: str) -> str:
-        c = comps.get(arm)
-        if c is None:
-            return "not measured"
-        return {
-            True: "better than plain",
-            False: "worse than plain",
-            None: "not distinguishable from plain",
-        }[c.better]
-
-    return EXPERIMENTS[exp_name].agreement(comps, metrics, verdict)
-
-
-def _claims(results: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
-    """The paper's claims, each with our verdict: reproduced, contradicted or undecided."""
-    out: list[tuple[str, str]] = []
-
-    def cat(better: bool | None, want: bool) -> str:
-        if better is None:
-            return "undecided"
-        return "reproduced" if better == want else "contradicted"
-
-    for exp_name, res in results.items():
-        if not res:
-            continue
-        exp = EXPERIMENTS[exp_name]
-        comps: dict[str, Comparison] = res["comparisons"]
-        tam, pbrs = comps.get("tamrm"), comps.get("pbrs")
-        out += exp.extra_claims(res["metrics"])
-        if tam is not None:
-            out.append((f"{exp.short}: {exp.claim_check}", cat(tam.better, True)))
-        if pbrs is not None and exp.pbrs_claim:
-            out.append(
-                (
-                    f"{exp.short}: PBRS alone does not help (is worse than plain)",
-                    cat(pbrs.better, False),
-                )
-            )
-    return out
-
-
-def _closing(results: dict[str, dict[str, Any]], n_seeds: int) -> list[str]:
-    claims = _claims(results)
-    lines = ["## Closing note: agreement with the paper", ""]
-    for label, key in (
-        ("Agrees with the paper", "reproduced"),
-        ("Disagrees with the paper", "contradicted"),
-        ("Not decided by our data (no difference detectable at 95%)", "undecided"),
-    ):
-        items = [c for c, v in claims if v == key]
-        lines.append(f"**{label}**" + (":" if items else ": none."))
-        lines += [f"- {c}" for c in items]
-        lines.append("")
-    # The ablation: which term carries the effect?
-    abl = []
-    for exp_name, res in results.items():
-        if not res:
-            continue
-        comps = res["comparisons"]
-        words = {
-            arm: {True: "better", False: "worse", None: "no different"}[comps[arm].better]
-            for arm in ("knn", "pbrs", "tamrm")
-            if arm in comps
-        }
-        if words:
-            title = EXPERIMENTS[exp_name].title.split(" (")[0]
-            abl.append(
-                f"- {title}: kNN only {words.get('knn', '?')}, PBRS only "
-                f"{words.get('pbrs', '?')}, both {words.get('tamrm', '?')} than plain."
-            )
-    lines += ["**Ablation (which term does the work)**:", *abl, ""]
-    lines += [
-        "Caveats: budgets are reduced where stated above; the learners are SB3's, not the "
-        f"authors'; {n_seeds} seeds or fewer per arm (see the tables) give wide intervals, "
-        "so 'not decided' means "
-        "the effect, if any, "
-        "is smaller than what these seeds can resolve, not that there is none.",
-        "",
-    ]
-    return lines
-
-
-def _answer(results: dict[str, dict[str, Any]], runs: list[Run]) -> list[str]:
-    """The headline: per arm, in how many experiments it beat plain, lost, or tied."""
-    lines = []
-    reduced = []
-    for exp_name, exp in EXPERIMENTS.items():
-        budgets = {json.dumps(r.budget, sort_keys=True) for r in runs if r.experiment == exp_name}
-        for b in budgets:
-            bd = json.loads(b)
-            if bd["episodes"] < exp.episodes:
-                reduced.append(f"{exp.title}: {bd['episodes']} episodes instead of {exp.episodes}")
-    if reduced:
-        lines += [
-            "> **Reduced budgets** (to fit the compute of one session; see each experiment): "
-            + "; ".join(reduced)
-            + ".",
-            "",
-        ]
-    for arm in ("tamrm", "knn", "pbrs"):
-        counts = {True: [], False: [], None: []}  # type: dict[bool | None, list[str]]
-        for exp_name, res in results.items():
-            comp = res.get("comparisons", {}).get(arm) if res else None
-            if comp is not None:
-                counts[comp.better].append(EXPERIMENTS[exp_name].title.split(" (")[0])
-        n = sum(len(v) for v in counts.values())
-        if not n:
-            continue
-        parts = []
-        for key, word in ((True, "better"), (False, "worse"), (None, "not distinguishable")):
-            if counts[key]:
-                parts.append(f"{word} in {len(counts[key])} ({', '.join(counts[key])})")
-        lines.append(
-            f"- **{ARMS[arm].label}** vs plain, on each experiment's headline metric "
-            f"(Welch 95% CI over seeds): " + "; ".join(parts) + f" of {n} experiments."
-        )
-    lines.append("")
-    return lines
 
 
 def _diagnostics(runs: list[Run]) -> list[str]:
@@ -551,73 +451,343 @@ def _diagnostics(runs: list[Run]) -> list[str]:
 #: pointing to the diagnostics tables rather than quoting numbers that a rerun changes.
 READING = [
     "**The potential term mostly rescales the reward.** Phi is the learner's own current "
-    "estimate (A2C: V(s); DQN: max_a Q(s, a)), with the learner's gamma. Then "
-    "F = gamma V(s') - V(s) is exactly delta - R, where delta = R + gamma V(s') - V(s) is "
-    "the TD error of the current estimate, so R + beta F = (1 - beta) R + beta delta: "
-    "with beta = 0.8 the learner sees a fifth of the environment reward plus its own TD "
-    "error (cart pole: *F per step* is close to -1 against R = +1 in the diagnostics). "
-    "Phi also moves as the network learns, so Ng et al.'s guarantee that potential-based "
-    "shaping keeps the optimal policy (a fixed Phi) does not apply.",
+    "estimate (actor-critic and A2C: V(s); DQN: max_a Q(s, a)). With the learner's gamma, "
+    "F = gamma V(s') - V(s) is delta - R, where delta = R + gamma V(s') - V(s) is the TD "
+    "error of the current estimate, so R + beta F = (1 - beta) R + beta delta (exactly "
+    "so for the actor-critic; for the authors' DQN, whose V(s') comes from the target "
+    "network, nearly). Phi also moves as the network learns, so Ng et al.'s guarantee "
+    "that potential-based shaping keeps the optimal policy (a fixed Phi) does not apply. "
+    "Gating it to the kNN window (`gate_potential`, the authors' code) confines this to "
+    "the steps N <= t < L_min.",
     "**The kNN term rewards agreeing with stored action sequences at the same time "
     "index.** r(t) lies in [1 - e^0.5, e - e^0.5] = [-0.65, +1.07], of the size of the "
     "environment reward in cart pole and mountain car and far larger than the maze's "
     "(0 except at the goal). It is not potential-based, so it can change which policy "
-    "is optimal. In the maze one detour shifts every later index, so a later prefix "
-    "rarely matches a stored path, and the term is only active from step N to L_min - 1 "
-    "with a full pool: as shorter successes enter the pool L_min shrinks, and the term "
-    "is active on few steps (*kNN active* in the diagnostics).",
-    "**Many comparisons.** Each experiment compares three arms with plain at 95%: twelve "
-    "comparisons in all, so about one 'better' or 'worse' in twelve is expected by chance "
-    "alone even if no arm made any difference. A single significant result is weak "
-    "evidence; a pattern across seeds, experiments and the curves is stronger.",
-    "**Our baselines are not the paper's.** The plain arms are SB3's A2C and DQN, tuned "
-    "by their authors for general use; a stronger baseline leaves less room for shaping "
-    "to help than the paper's plain learners had (e.g. the paper's plain A2C never "
-    "solved cart pole in 1000 episodes).",
+    "is optimal. With a fixed start (the authors' cart pole) an action prefix identifies "
+    "the state, so imitating a stored open-loop sequence can work; with random starts it "
+    "cannot. In the maze one detour shifts every later index, so a later prefix rarely "
+    "matches a stored path (*kNN active* in the diagnostics).",
+    "**Many comparisons.** The claims table adjusts its p-values with Holm's method over "
+    "all its tests; the per-variant sections below give unadjusted 95% intervals, of "
+    "which about one in twenty excludes zero by chance alone.",
+    "**Two fidelities answer two questions.** *Authors*: does the method help the "
+    "learners it was published with, in their settings? *Clean*: does it help standard, "
+    "reasonably tuned learners? A stronger baseline leaves less room for shaping.",
 ]
 
 DEVIATIONS = [
-    "The learners are Stable-Baselines3's A2C and DQN, not the authors' code; the shaped "
-    "reward R_meta comes from the tamrm server through `tamrm.sb3.ShapedVecEnv` (one gRPC "
-    "round trip per environment step), and the potential term uses the SB3 model's own "
-    "estimates (A2C: critic V(s); DQN: max_a Q(s, a) of the online network).",
-    "Where the paper is silent we use SB3 defaults (A2C: lr 7e-4, n_steps 5, gamma 0.99, "
-    "RMSprop, no entropy bonus). DQN: batch 32, learning starts after 200 steps, a gradient "
-    "step every 4 steps, target network copied every 200 steps (SB3's default of 10 000 is "
-    "longer than most runs).",
-    'The paper\'s DQN "decay rate 0.9" is read as the discount gamma = 0.9 (the epsilon is '
-    "fixed at 0.1 as the paper's \"epsilon 0.1\"). The server's gamma for the potential term "
-    "equals the learner's gamma in every experiment.",
-    'The kNN start threshold N (paper: "N > 0", no value) is the service default, 10; '
-    "min_pool_size is the pool capacity (the service default): the kNN term starts once the "
-    "pool is full, i.e. from episode "
-    + ", ".join(
-        f"{e.tamrm['pool_capacity'] + 1} ({e.title.split(' (')[0].lower()})"
-        for e in EXPERIMENTS.values()
-        if e.switch_after is None
-    )
-    + ", and again 11 episodes after the switch in the modified maze (fresh pool). Before "
-    "that, kNN only equals plain and TAMRM equals PBRS only, step for step (same seeds).",
-    "Cart pole: `CartPole-v0` of gymnasium (200-step episodes, pole limit 12 degrees; the "
-    "paper's text says 15). The training reward is +1 per step and -1 on the step that "
-    "fails; the truncation at 200 steps is not a failure. The metric is steps kept up.",
-    "Mountain car: `MountainCar-v0` dynamics without Gym's 200-step limit; each episode is "
-    "capped at a step limit (a truncation), stated with the budget below. Episode score: "
-    "the return (-steps).",
-    f"Maze: observation is the raw (x, y) cell as two floats; episode score 100/steps on "
-    f"success and 0 on a truncated failure. The start is {MAZE_START} (shortest path "
-    f"{maze_shortest_path(MAZE_START)} moves).",
-    "Modified maze: after the switch episode (paper: 100; ours: see its budget) the start "
-    f"moves to {MAZE_NEW_START} (our choice; shortest path "
-    f"{maze_shortest_path(MAZE_NEW_START)} moves). Every arm, plain included, "
-    "then continues on a new task id (a fresh, empty pool), as the paper prescribes; the "
+    "**Authors fidelity**: the learners of the authors' code transcribed into numpy "
+    "(`tamrm_experiments/learners.py`: one-step actor-critic for cart pole, 1x20 ReLU, "
+    "Adam 1e-3 actor / 1e-2 critic, gamma 0.9, the actor's learning rate dropped to 1e-5 "
+    "once the mean of 100 episodes reaches 195; tutorial DQN for mountain car, 1x20 ReLU, "
+    "RMSProp 0.005, MSE, gamma 0.9, learning only once 50 000 steps were taken, target "
+    "copied every 500 learning steps, epsilon 1 -> 0.1 by 5e-5 per learning step), their "
+    "episode loops (`tamrm_experiments/authors.py`) and their shaping settings, served by "
+    "the server: both terms only while the pool is full and N <= t < L_min "
+    "(`gate_potential` on; PBRS-only arm: their ungated PBRS line), their terminal "
+    "overrides after the shaping (cart pole: -1 on failure; mountain car: +10 at the "
+    "goal), the episode score = the sum of the environment rewards.",
+    "Authors' cart pole: unwrapped `CartPole-v1` (pole limit 12 degrees), episodes cut at "
+    "200 steps, pool 30, k 20, N 8, alpha = beta = 0.8 (PBRS only: beta 1). *Fixed "
+    "start*: the environment is reseeded before every reset (theirs: `env.seed(2)`; ours: "
+    "the run's seed, so each seed has its own start state); *random start*: seeded once.",
+    "Authors' mountain car: unwrapped `MountainCar-v0` (no 200-step limit), safety caps of "
+    "100 000 steps per episode and 3 000 000 per run (never reached by their saved runs), "
+    "pool 20, k 20, N 10, gamma 0.9, potential from max Q(s) of the online and "
+    "max Q(s') of the target network (theirs); *their signs* alpha = beta = -1 (their "
+    "code subtracts both terms) and *the paper's* +1.",
+    "What remains different from the authors' code (the server follows SPEC.md): their "
+    "window ends one step earlier (t < L_min - 1); their pool also replaces the worst "
+    "trajectory on a tie; their distances add 0.001 to every component and they round "
+    "f(t) to 4 decimals (`experiments/tests/test_authors_formula.py` checks r(t) against a "
+    "transcription of their `predict_modified`); F of a terminal step uses V(s') = 0 "
+    "(theirs: the network's value), which the terminal overrides make irrelevant; they "
+    "ran one seed, we run seeds 0..N-1 (network initialisation, action sampling, "
+    "environment). The authors' maze variants (their observation bug, |D| = 3 and 10) "
+    "are not implemented yet.",
+    "**Clean fidelity**: Stable-Baselines3 learners on `tamrm.sb3.ShapedVecEnv` (one "
+    "gRPC round trip per environment step, the potential from the model's own estimates: "
+    "A2C critic V(s), DQN max_a Q(s, a) of the online network), the service's defaults "
+    "(N = 10, min_pool_size = pool capacity) and two variants: `gate_potential` off (as "
+    "the first report ran) and on.",
+    "Clean cart pole: SB3 A2C (actor and critic 2x20, SB3 defaults: lr 7e-4, n_steps 5, "
+    "gamma 0.99, RMSprop), `CartPole-v0` (200-step episodes), reward +1 per step and -1 "
+    "on the failing step; pool 30, k 20, alpha = beta = 0.8, gamma 0.99.",
+    "Clean mountain car: SB3 DQN 2x20, lr 0.005, fixed epsilon 0.1, gamma 0.9, batch 32, "
+    "learning from step 200, a gradient step every 4 steps, target copied every 200; "
+    "`MountainCar-v0` without the 200-step limit, capped at 10 000 steps per episode; "
+    "pool 20, k 20, alpha = beta = 1.",
+    "Clean maze: the first report's DQN on the raw (x, y) cell did not learn the maze "
+    "(plain ~900 steps per episode after 200 episodes, a random walk's ~817). It is "
+    "replaced (issue 14's pilot) by SB3 DQN on a one-hot cell (64 inputs, one hidden "
+    "layer of 64, lr 1e-3, gamma 0.9, a gradient step on every step from step 500, target "
+    "copied every 500, epsilon 1 -> 0.05 over the first 10 000 steps); pool 10, k 10, "
+    "alpha 0.8, beta 0.3. Episode score 100/steps on success, 0 on a truncated failure. "
+    f"Start {MAZE_START} (shortest path {maze_shortest_path(MAZE_START)} moves).",
+    "Modified maze: after 100 episodes (the paper's) the start moves to "
+    f"{MAZE_NEW_START} (our choice; shortest path {maze_shortest_path(MAZE_NEW_START)} "
+    "moves); every arm, plain included, continues on a new task id (a fresh pool); the "
     "DQN keeps its network and replay buffer.",
-    "The plain arm also goes through the server (alpha = beta = 0), so that every arm runs "
-    "the same loop; PBRS only is alpha = 0, kNN only is beta = 0 (the ablation the paper "
-    "lacks).",
-    "Each run has a safety cap on its total steps; a run that reaches it stops early and "
-    "its totals are reported as lower bounds.",
+    "Every arm, plain included, goes through the server (plain: alpha = beta = 0), so "
+    "that every arm runs the same loop; kNN only (beta = 0) is the ablation the paper "
+    "lacks. Each run has a safety cap on its total steps; a run reaching it is reported "
+    "as censored (its totals are lower bounds, marked ≥).",
 ]
+
+
+# -- the claims table ------------------------------------------------------------------
+
+Group = tuple[str, str]  # (experiment, variant)
+
+
+@dataclass
+class ClaimRow:
+    """One claim measured in one variant."""
+
+    exp_name: str
+    variant: str
+    claim: Claim
+    arm_values: list[float]
+    plain_values: list[float]
+    planned: int  # seeds per arm asked for (by some invocation)
+    diff: Interval = field(default_factory=lambda: Interval(math.nan, math.nan, math.nan, 0))
+    p: float = math.nan
+    p_holm: float = math.nan
+    censored: bool = False
+
+    @property
+    def complete(self) -> bool:
+        """Every requested seed of both arms is done."""
+        n = min(len(self.arm_values), len(self.plain_values))
+        return n >= self.planned > 0
+
+    def measure(self) -> None:
+        """The interval of (arm - plain) and the unadjusted p-value."""
+        self.diff = welch_interval(self.arm_values, self.plain_values)
+        if self.claim.metric == "solved":
+            k_a, k_p = int(sum(self.arm_values)), int(sum(self.plain_values))
+            self.p = fisher_p(k_a, len(self.arm_values), k_p, len(self.plain_values))
+        else:
+            self.p = welch_p(self.arm_values, self.plain_values)
+
+    def verdict(self) -> tuple[str, str]:
+        """(word, why): ``holds``, ``does not hold`` or ``cannot be decided yet``."""
+        n_a, n_p = len(self.arm_values), len(self.plain_values)
+        if n_a < 2 or n_p < 2:
+            return "cannot be decided yet", f"{n_a} and {n_p} of {self.planned} seeds done"
+        sig = not math.isnan(self.p_holm) and self.p_holm < 0.05
+        sign = 0 if math.isnan(self.diff.mean) else (1 if self.diff.mean > 0 else -1)
+        if sig and sign == self.claim.direction:
+            if self.censored and self.claim.direction == -1:
+                return "cannot be decided yet", "significant, but some totals are lower bounds"
+            return "holds", f"Holm-adjusted p = {self.p_holm:.3g}"
+        if sig:
+            return "does not hold", (
+                f"significant in the opposite direction (Holm-adjusted p = {self.p_holm:.3g})"
+            )
+        if not self.complete:
+            return "cannot be decided yet", (
+                f"no significant difference with {min(n_a, n_p)} of {self.planned} seeds "
+                "done (Holm-adjusted p = "
+                f"{self.p_holm:.2g})"
+            )
+        return "does not hold", (
+            f"no significant difference at {min(n_a, n_p)} seeds (Holm-adjusted p = "
+            f"{self.p_holm:.2g}): any effect is smaller than these seeds resolve"
+        )
+
+    def cell(self) -> str:
+        """The measured cell: both arms, the difference, the test."""
+        fmt = "{:,.2f}" if self.claim.metric == "solved" else "{:,.1f}"
+        if self.claim.metric == "solved":
+            parts = [
+                f"{self.claim.arm} {int(sum(self.arm_values))}/{len(self.arm_values)}, "
+                f"plain {int(sum(self.plain_values))}/{len(self.plain_values)} seeds solved"
+            ]
+        else:
+            a, p = t_interval(self.arm_values), t_interval(self.plain_values)
+            parts = [f"{self.claim.arm} {_fmt_interval(a, fmt)}, plain {_fmt_interval(p, fmt)}"]
+        if not math.isnan(self.diff.low):
+            parts.append(
+                f"difference {_fmt(self.diff.mean, fmt)} [{_fmt(self.diff.low, fmt)}, "
+                f"{_fmt(self.diff.high, fmt)}], p = {self.p:.2g}, Holm {self.p_holm:.2g}"
+            )
+        prefix = "≥ " if self.censored and self.claim.metric in CENSORABLE else ""
+        return prefix + "; ".join(parts)
+
+
+def _claim_rows(
+    groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, int]]
+) -> list[ClaimRow]:
+    rows = []
+    for (exp_name, variant), runs in groups.items():
+        exp = EXPERIMENTS[exp_name]
+        for claim in exp.claims:
+            by_arm = {arm: [r for r in runs if r.arm == arm] for arm in (claim.arm, "plain")}
+            planned = min(
+                len({sd for e, v, a, sd in requested if (e, v, a) == (exp_name, variant, arm)})
+                for arm in (claim.arm, "plain")
+            )
+            if not by_arm[claim.arm] and not by_arm["plain"] and not planned:
+                continue
+            done = min(len(by_arm[claim.arm]), len(by_arm["plain"]))
+            row = ClaimRow(
+                exp_name,
+                variant,
+                claim,
+                [run_metrics(r)[claim.metric] for r in by_arm[claim.arm]],
+                [run_metrics(r)[claim.metric] for r in by_arm["plain"]],
+                max(planned, done),
+                censored=any(r.meta.get("censored") for rs in by_arm.values() for r in rs),
+            )
+            row.measure()
+            rows.append(row)
+    for row, adj in zip(rows, holm([r.p for r in rows]), strict=True):
+        row.p_holm = adj
+    return rows
+
+
+def _claims_table(rows: list[ClaimRow]) -> list[str]:
+    from tamrm_experiments.authors_data import authors_summary
+
+    lines = [
+        "One row per claim of the paper and variant of ours. *Ours* cells: mean over seeds "
+        "[95% t-interval] per arm, the Welch 95% interval of (arm - plain), the unadjusted "
+        "p-value (Welch's t-test; Fisher's exact test for seeds solved) and the "
+        f"Holm-adjusted one over the {sum(1 for r in rows if not math.isnan(r.p))} tests of "
+        "this table. A claim *holds* if the adjusted p < 0.05 in the claimed direction, "
+        "*does not hold* if it is significant the other way or if every planned seed is "
+        "done without a significant difference, and *cannot be decided yet* otherwise.",
+        "",
+        "| claim | paper | authors' saved runs | variant | ours | verdict |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        exp = EXPERIMENTS[row.exp_name]
+        word, why = row.verdict()
+        lines.append(
+            f"| {exp.short}: {row.claim.text} | {row.claim.paper} | "
+            f"{authors_summary(row.exp_name) or '-'} | {exp.variant(row.variant).label} | "
+            f"{row.cell()} | **{word}**: {why} |"
+        )
+    lines.append("")
+    return lines
+
+
+# -- status, pilot, cost ---------------------------------------------------------------
+
+
+def _partials(runs_dir: Path) -> dict[tuple[str, str, str, int], int]:
+    """Runs in progress (or interrupted): episodes written so far."""
+    out = {}
+    for path in runs_dir.rglob("seed*.csv.partial"):
+        rel = path.relative_to(runs_dir).parts
+        if len(rel) != 4:
+            continue
+        seed = int(rel[3].removeprefix("seed").split(".")[0])
+        with open(path) as fh:
+            out[(rel[0], rel[1], rel[2], seed)] = max(0, sum(1 for _ in fh) - 1)
+    return out
+
+
+def _status(
+    groups: dict[Group, list[Run]],
+    requested: list[tuple[str, str, str, int]],
+    partial: dict[tuple[str, str, str, int], int],
+) -> list[str]:
+    lines = [
+        "| experiment | variant | arm | seeds done | pending (requested, not finished) |",
+        "|---|---|---|---|---|",
+    ]
+    for (exp_name, variant), runs in groups.items():
+        exp = EXPERIMENTS[exp_name]
+        for arm in ARMS:
+            done = sorted(r.seed for r in runs if r.arm == arm)
+            want = [sd for e, v, a, sd in requested if (e, v, a) == (exp_name, variant, arm)]
+            pending = [sd for sd in want if sd not in done]
+            if not done and not pending:
+                continue
+            pend = []
+            for sd in pending:
+                eps = partial.get((exp_name, variant, arm, sd))
+                pend.append(f"{sd} ({eps} episodes so far)" if eps else str(sd))
+            lines.append(
+                f"| {exp.short} | {exp.variant(variant).label} | {ARMS[arm].label} | "
+                f"{len(done)}: {_seed_list(done)} | {len(pending)}"
+                + (f": {', '.join(pend)}" if pend else "")
+                + " |"
+            )
+    lines.append("")
+    return lines
+
+
+def _seed_list(seeds: list[int]) -> str:
+    if not seeds:
+        return "-"
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
+    """Does the plain learner learn within the budget? First vs last episodes."""
+    from tamrm_experiments.envs import maze_random_walk_steps
+
+    walk = maze_random_walk_steps(MAZE_START)
+    lines = [
+        "Plain learner per variant: mean steps per episode over the first and the last 20 "
+        "episodes of each seed (mean [95% t-interval] over seeds). In the maze a uniformly "
+        f"random walk needs {walk:,.0f} steps on average (exact, from {MAZE_START}; "
+        f"shortest path {maze_shortest_path(MAZE_START)}); in cart pole more is better "
+        "(200 = kept up for the whole episode); in mountain car fewer is better.",
+        "",
+        "| experiment | variant | seeds | first 20 episodes | last 20 episodes | learns? |",
+        "|---|---|---|---|---|---|",
+    ]
+    for (exp_name, variant), runs in groups.items():
+        plain = [r for r in runs if r.arm == "plain" and len(r.df) >= 40]
+        if not plain:
+            continue
+        exp = EXPERIMENTS[exp_name]
+        first = t_interval([float(r.df["steps"].head(20).mean()) for r in plain])
+        last = t_interval([float(r.df["steps"].tail(20).mean()) for r in plain])
+        higher = exp.headline == "mean_steps"
+        if math.isnan(last.low):
+            learns = "n=1"
+        elif higher:
+            learns = "yes" if last.low > first.high else "not detectably"
+        else:
+            learns = "yes" if last.high < first.low else "not detectably"
+        lines.append(
+            f"| {exp.short} | {exp.variant(variant).label} | {len(plain)} | "
+            f"{_fmt_interval(first, '{:,.1f}')} | {_fmt_interval(last, '{:,.1f}')} | {learns} |"
+        )
+    lines.append("")
+    return lines
+
+
+def _cost(groups: dict[Group, list[Run]]) -> list[str]:
+    lines = [
+        "Cost per run (each environment step is one gRPC round trip to the server; 2 cores "
+        "shared with other work, runs under `nice`):",
+        "",
+        "| experiment | variant | runs | steps per run | wall time per run | steps/s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for (exp_name, variant), runs in groups.items():
+        if not runs:
+            continue
+        exp = EXPERIMENTS[exp_name]
+        steps = t_interval([float(r.meta.get("total_steps", 0)) for r in runs])
+        wall = t_interval([float(r.meta.get("wall_time_s", 0)) / 60 for r in runs])
+        rate = t_interval([float(r.meta.get("steps_per_s") or math.nan) for r in runs])
+        lines.append(
+            f"| {exp.short} | {exp.variant(variant).label} | {len(runs)} | "
+            f"{_fmt_interval(steps, '{:,.0f}')} | {_fmt_interval(wall, '{:,.1f}')} min | "
+            f"{_fmt_interval(rate, '{:,.0f}')} |"
+        )
+    lines.append("")
+    return lines
 
 
 def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
@@ -628,138 +798,97 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path) -> None:
         plots_rel = str(plots_dir.resolve().relative_to(out.parent.resolve()))
     except ValueError:
         plots_rel = str(plots_dir.resolve())
-    profiles = sorted({r.meta["spec"]["profile"] for r in runs})
-    seeds = sorted({r.seed for r in runs})
     lines = [
         "# Reproduction of the TAMRM paper's experiments",
         "",
         "*Generated by `python -m tamrm_experiments report` from the raw runs in "
         f"`{runs_dir}`; do not edit by hand.*",
         "",
-        "Question: does TAMRM shaping, served by tamrm, speed up learning? We rerun the "
-        "paper's three experiments (§V) with the real server and the Python client in the "
-        "loop, four arms each (plain, PBRS only, kNN only, TAMRM), several seeds, and "
-        "report means with 95% confidence intervals over seeds.",
+        "Question: does TAMRM shaping, served by tamrm, speed up learning as the paper "
+        "claims? Every experiment runs in two fidelities, four arms each (plain, PBRS only, "
+        "kNN only, TAMRM), several seeds: *authors* (the learners, environments, gating, "
+        "signs and terminal overrides of the authors' published code, transcribed) and "
+        "*clean* (Stable-Baselines3 learners, SPEC defaults, the potential term ungated and "
+        "gated). The server computes every shaped reward.",
         "",
     ]
     if not runs:
         lines += ["No finished runs yet.", ""]
         out.write_text("\n".join(lines))
         return
-    have = {(r.experiment, r.arm, r.seed) for r in runs}
-    requested = _requested(runs_dir) or [
-        (e, a, sd) for sd in seeds for e in EXPERIMENTS for a in ARMS
-    ]
-    missing = [f"{e}/{a}/seed{sd}" for e, a, sd in requested if (e, a, sd) not in have]
-    if missing:
-        lines += [
-            f"> **Incomplete grid**: {len(missing)} of {len(requested)}"
-            " runs (experiment/arm/seed) did not finish in the session and are left out: "
-            + ", ".join(missing)
-            + ". The tables give the number of seeds per arm; `experiments/reproduce.sh` "
-            "resumes and runs only these.",
-            "",
-        ]
+    requested = _requested(runs_dir) or [(r.experiment, r.variant, r.arm, r.seed) for r in runs]
+    groups: dict[Group, list[Run]] = {}
+    for exp_name, exp in EXPERIMENTS.items():
+        for var in exp.variants:
+            rs = [r for r in runs if (r.experiment, r.variant) == (exp_name, var.name)]
+            asked = any((e, v) == (exp_name, var.name) for e, v, _a, _s in requested)
+            if rs or asked:
+                groups[(exp_name, var.name)] = rs
+    profiles = sorted({r.meta["spec"]["profile"] for r in runs})
     if "quick" in profiles:
         lines += [
             "> **Quick (smoke-test) profile**: tiny budgets, 1 seed. These numbers say "
             "nothing about the method.",
             "",
         ]
-    sections: list[str] = []
-    results: dict[str, dict[str, Any]] = {}
-    for exp_name in EXPERIMENTS:
-        exp_runs = [r for r in runs if r.experiment == exp_name]
-        sec, res = _experiment_section(exp_name, exp_runs, plots_rel, plots_dir)
-        sections += sec
-        results[exp_name] = res
-
-    lines += ["## Answer", ""]
-    lines += _answer(results, runs)
-    lines += ["## Summary per experiment", ""]
-    lines += [_agreement(e, results[e]) for e in EXPERIMENTS]
-    lines += [""]
-    lines += sections
-
-    # How it was run.
-    all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
-    interrupted = [i for i in all_invs if i.get("interrupted")]
-    starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
-    ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
-    elapsed = f"between {starts[0]} and {ends[-1]}" if starts and ends else "times unknown"
-    busy_min = _busy_minutes(all_invs)
-    run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
-    total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
-    commands = sorted({i["command"] for i in all_invs})
-    vers = runs[0].meta.get("versions", {})
-    diff_versions = sorted({json.dumps(r.meta.get("versions", {}), sort_keys=True) for r in runs})
+    n_req = len(requested)
+    n_done = sum(1 for r in runs if (r.experiment, r.variant, r.arm, r.seed) in set(requested))
     lines += [
-        "## How this was run",
+        "## Claims",
         "",
-        f"- Profile(s): {', '.join(profiles)}; seeds {seeds[0]}..{seeds[-1]} "
-        f"({len(seeds)}); {len(runs)} finished runs.",
-        "- The one command: `experiments/reproduce.sh` (from the repository root; it runs "
-        "the grid, then this report). The grid invocation(s) it made (resumable; finished "
-        "runs are skipped):",
+        f"{n_done} of the {n_req} runs asked for so far are finished (status below); "
+        "the grid is resumable and later sessions continue it.",
         "",
-        *[f"      {c}" for c in commands],
-        "",
-        f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
-        f"- Wall time: {busy_min:.0f} min with at least one grid invocation running "
-        f"({elapsed}, in one or more sessions) over {len(all_invs)} grid "
-        "invocation(s), some of them concurrent (sharing the runs directory); "
-        f"{len(interrupted)} of them were interrupted and "
-        "restarted (to change a budget or the number of jobs: a run whose settings changed "
-        "was redone, finished runs with unchanged settings were kept). Sum of the wall times "
-        f"of the {len(runs)} runs reported: {run_wall / 60:.1f} min; "
-        f"{total_steps:,} environment steps, each one gRPC round trip.",
-        "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
     ]
-    lines += [
-        "",
-        "Throughput (each step is one shaping round trip; the machine has "
-        f"{vers.get('cpu_count', '?')} cores, shared with other work during part of the run):",
-        "",
-        "| experiment | runs | environment steps | sum of run wall times | steps/s per run |",
-        "|---|---|---|---|---|",
-    ]
-    for exp_name, exp in EXPERIMENTS.items():
-        rs = [r for r in runs if r.experiment == exp_name]
-        if not rs:
-            continue
-        steps = sum(int(r.meta.get("total_steps", 0)) for r in rs)
-        secs = sum(float(r.meta.get("wall_time_s", 0)) for r in rs)
-        rate = t_interval([float(r.meta.get("steps_per_s") or math.nan) for r in rs])
-        lines.append(
-            f"| {exp.title} | {len(rs)} | {steps:,} | {secs / 60:.1f} min | "
-            f"{_fmt_interval(rate, '{:,.0f}')} |"
-        )
-    lines.append("")
-    if len(diff_versions) > 1:
-        varying = {}
-        for r in runs:
-            for k, v in r.meta.get("versions", {}).items():
-                varying.setdefault(k, set()).add(str(v))
-        parts = [f"{k}: {', '.join(sorted(v))}" for k, v in sorted(varying.items()) if len(v) > 1]
-        lines.append(
-            "- Versions that differ between runs (the repository's HEAD moved while other "
-            "work was committed; the server binary and the packages are what count): "
-            + "; ".join(parts)
-            + "."
-        )
-        if len(varying.get("tamrm_server_sha256", ())) > 1:
-            lines.append(
-                "- More than one server build served these runs (the binary was rebuilt as "
-                "the code moved on): `git log -- src proto` between the runs' commits says "
-                "what changed."
-            )
-    lines += ["", "## Deviations from the paper", ""]
+    lines += _claims_table(_claim_rows(groups, requested))
+    lines += ["## Status of the grid", ""]
+    lines += _status(groups, requested, _partials(runs_dir))
+    lines += ["## Pilot: do the plain learners learn within the budget?", ""]
+    lines += _pilot(groups)
+    for (exp_name, variant), rs in groups.items():
+        sec, _res = _experiment_section(exp_name, rs, plots_rel, plots_dir, variant)
+        lines += sec
+    lines += ["## How this was run", ""]
+    lines += _how_run(runs_dir, runs, out)
+    lines += _cost(groups)
+    lines += ["## Settings and deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
     lines += ["", "## Reading these results", ""]
     lines += [f"- {r}" for r in READING]
     lines += [""]
-    lines += _closing(results, len(seeds))
     out.write_text("\n".join(lines))
 
 
-MetricFn = Callable[[Run], float]
+def _how_run(runs_dir: Path, runs: list[Run], out: Path) -> list[str]:
+    all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
+    starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
+    ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
+    elapsed = f"between {starts[0]} and {ends[-1]}" if starts and ends else "times unknown"
+    run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
+    total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
+    commands = sorted({i["command"] for i in all_invs})
+    vers = runs[0].meta.get("versions", {})
+    lines = [
+        "- The grid invocations (resumable; finished runs are skipped; several may share "
+        "the runs directory):",
+        "",
+        *[f"      {c}" for c in commands],
+        "",
+        f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
+        f"- Wall time: {_busy_minutes(all_invs):.0f} min with at least one grid invocation "
+        f"running ({elapsed}); sum of the wall times of the {len(runs)} finished runs: "
+        f"{run_wall / 60:.1f} min; {total_steps:,} environment steps.",
+        "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
+    ]
+    varying: dict[str, set[str]] = {}
+    for r in runs:
+        for k, v in r.meta.get("versions", {}).items():
+            varying.setdefault(k, set()).add(str(v))
+    parts = [f"{k}: {', '.join(sorted(v))}" for k, v in sorted(varying.items()) if len(v) > 1]
+    if parts:
+        lines.append(
+            "- Versions that differ between runs (the repository moved on while the grid "
+            "ran; the server binary and the packages are what count): " + "; ".join(parts)
+        )
+    lines.append("")
+    return lines

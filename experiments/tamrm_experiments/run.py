@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from tamrm_experiments.configs import ARMS, EXPERIMENTS, RunSpec, arm_weights
+from tamrm_experiments.configs import EXPERIMENTS, RunSpec
 
 __all__ = [
     "CSV_FIELDS",
@@ -60,7 +60,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def run_paths(out: Path, spec: RunSpec) -> tuple[Path, Path, Path]:
     """Return (csv, partial csv, json sidecar) paths of ``spec`` under ``out``."""
-    stem = out / spec.experiment / spec.arm / f"seed{spec.seed}"
+    stem = out / spec.experiment / spec.variant / spec.arm / f"seed{spec.seed}"
     return stem.with_suffix(".csv"), stem.with_suffix(".csv.partial"), stem.with_suffix(".json")
 
 
@@ -138,6 +138,8 @@ def make_env(spec: RunSpec) -> Callable[[], Any]:
         return lambda: envs.make_mountain_car(cap)
     if exp.env == "maze":
         return lambda: envs.make_maze(cap, spec.budget.switch_after)
+    if exp.env == "maze_onehot":
+        return lambda: envs.make_maze_onehot(cap, spec.budget.switch_after)
     raise ValueError(f"unknown env {exp.env!r}")
 
 
@@ -231,6 +233,32 @@ def _make_callback(
     return EpisodeRecorder()
 
 
+def _create_task(client: Any, task_id: str, num_actions: int, cfg: dict[str, Any]) -> bool:
+    """Create the task; return whether the server applies ``gate_potential`` itself.
+
+    A client or server without SPEC v1.1's ``gate_potential`` gets the other settings;
+    the caller then gates on its side (authors' loop) or fails (SB3 loop)."""
+    cfg = dict(cfg)
+    gate = bool(cfg.pop("gate_potential", False))
+    try:
+        task = client.create_task(task_id, num_actions=num_actions, gate_potential=gate, **cfg)
+    except TypeError:  # a client without the keyword
+        client.create_task(task_id, num_actions=num_actions, **cfg)
+        return False
+    # A server without field 11 ignores it: its resolved config then says false.
+    return bool(getattr(task.config, "gate_potential", None) == gate)
+
+
+def _sb3_kwargs(algo_kwargs: dict[str, Any], budget: Any) -> dict[str, Any]:
+    """SB3 keyword arguments: ``exploration_steps`` becomes SB3's fraction of the run."""
+    # SB3 mutates policy_kwargs (A2C adds its optimizer class): pass a copy.
+    kwargs = copy.deepcopy(algo_kwargs)
+    steps = kwargs.pop("exploration_steps", None)
+    if steps is not None:
+        kwargs["exploration_fraction"] = min(1.0, steps / (budget.max_total_steps + 1))
+    return kwargs
+
+
 def run_one(
     spec: RunSpec,
     address: str,
@@ -243,54 +271,42 @@ def run_one(
     """
     import tamrm
     import torch
-    from stable_baselines3 import A2C, DQN
-    from stable_baselines3.common.vec_env import DummyVecEnv
-    from tamrm.sb3 import ShapedVecEnv
 
     torch.set_num_threads(1)
     progress = progress or (lambda _n: None)
     exp = EXPERIMENTS[spec.experiment]
-    alpha, beta = arm_weights(exp, ARMS[spec.arm])
-    task_cfg = {**exp.tamrm, "alpha": alpha, "beta": beta}
+    task_cfg = spec.task_config()
     csv_path, partial, meta_path = run_paths(out, spec)
     csv_path.parent.mkdir(parents=True, exist_ok=True)
     for stale in (csv_path, meta_path):
         stale.unlink(missing_ok=True)
 
-    base_id = f"{spec.experiment}/{spec.arm}/s{spec.seed}/{uuid.uuid4().hex[:12]}"
+    base_id = f"{spec.key.replace('/seed', '/s')}/{uuid.uuid4().hex[:12]}"
     task_ids = [base_id]
     started = time.time()
     t0 = time.monotonic()
-    with tamrm.Client(address) as client:
-        env_cls = exp.env
-        client.create_task(base_id, num_actions=_num_actions(env_cls), **task_cfg)
-        shaped = ShapedVecEnv(
-            DummyVecEnv([make_env(spec)]),
-            client.session(base_id, 1),
-            # The maze's score (100 / steps on success) comes with the episode's last info.
-            score_key="episode_score" if exp.score_from_info else None,
-        )
+    n_actions = _num_actions(exp.env)
+    with tamrm.Client(address) as client, open(partial, "w", newline="") as fh:
+        gate_on_server = _create_task(client, base_id, n_actions, task_cfg)
+        writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        if spec.fidelity == "authors":
+            from tamrm_experiments.authors import train_authors
 
-        def switch_task(_episode: int) -> None:
-            # Modified maze: the start moved, a new task with a fresh pool (paper §IV-B).
-            # Called between episodes, so no episode of the old session is in progress.
-            new_id = f"{base_id}/p{len(task_ids)}"
-            client.create_task(new_id, num_actions=_num_actions(env_cls), **task_cfg)
-            task_ids.append(new_id)
-            shaped.session.close()
-            shaped.session = client.session(new_id, 1)
+            def record(row: dict[str, Any]) -> None:
+                writer.writerow({**row, "wall_time": round(time.monotonic() - t0, 3)})
+                fh.flush()
+                progress(1)
 
-        algo = {"a2c": A2C, "dqn": DQN}[exp.algo]
-        # SB3 mutates policy_kwargs (A2C adds its optimizer class): pass a copy.
-        kwargs = copy.deepcopy(exp.algo_kwargs)
-        model = algo("MlpPolicy", shaped, seed=spec.seed, device="cpu", **kwargs)
-        shaped.bind_model(model)
-        with open(partial, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
-            writer.writeheader()
-            callback = _make_callback(spec, writer, fh, progress, switch_task)
-            model.learn(total_timesteps=spec.budget.max_total_steps + 1, callback=callback)
-        shaped.session.close()
+            with client.session(base_id, 1) as session:
+                totals = train_authors(spec, session, record, gate_on_server)
+            episodes, total_steps = totals["episodes"], totals["total_steps"]
+        else:
+            if task_cfg.get("gate_potential") and not gate_on_server:
+                raise RuntimeError("this server or client has no gate_potential (SPEC v1.1)")
+            episodes, total_steps = _run_sb3(
+                spec, client, base_id, task_ids, task_cfg, writer, fh, progress
+            )
         final_pools = {}
         for tid in task_ids:
             task = client.get_task(tid)
@@ -305,15 +321,16 @@ def run_one(
             }
             client.delete_task(tid)
     wall = time.monotonic() - t0
-    censored = callback.episodes < spec.budget.episodes
+    censored = episodes < spec.budget.episodes
     meta = {
         "spec": spec.to_dict(),
         "complete": True,
-        "episodes": callback.episodes,
-        "total_steps": callback.total_steps,
+        "episodes": episodes,
+        "total_steps": total_steps,
         "censored": censored,
+        "gate_potential_on_server": gate_on_server,
         "wall_time_s": round(wall, 2),
-        "steps_per_s": round(callback.total_steps / wall, 1) if wall > 0 else None,
+        "steps_per_s": round(total_steps / wall, 1) if wall > 0 else None,
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
         "task_ids": task_ids,
         "final_pools": final_pools,
@@ -326,8 +343,50 @@ def run_one(
     return meta
 
 
+def _run_sb3(
+    spec: RunSpec,
+    client: Any,
+    base_id: str,
+    task_ids: list[str],
+    task_cfg: dict[str, Any],
+    writer: Any,
+    fh: Any,
+    progress: Callable[[int], None],
+) -> tuple[int, int]:
+    """The clean fidelity: an SB3 model on a ``ShapedVecEnv``; returns (episodes, steps)."""
+    from stable_baselines3 import A2C, DQN
+    from stable_baselines3.common.vec_env import DummyVecEnv
+    from tamrm.sb3 import ShapedVecEnv
+
+    exp = EXPERIMENTS[spec.experiment]
+    shaped = ShapedVecEnv(
+        DummyVecEnv([make_env(spec)]),
+        client.session(base_id, 1),
+        # The maze's score (100 / steps on success) comes with the episode's last info.
+        score_key="episode_score" if exp.score_from_info else None,
+    )
+
+    def switch_task(_episode: int) -> None:
+        # Modified maze: the start moved, a new task with a fresh pool (paper §IV-B).
+        # Called between episodes, so no episode of the old session is in progress.
+        new_id = f"{base_id}/p{len(task_ids)}"
+        _create_task(client, new_id, _num_actions(exp.env), task_cfg)
+        task_ids.append(new_id)
+        shaped.session.close()
+        shaped.session = client.session(new_id, 1)
+
+    algo = {"a2c": A2C, "dqn": DQN}[exp.algo]
+    kwargs = _sb3_kwargs(exp.algo_kwargs, spec.budget)
+    model = algo("MlpPolicy", shaped, seed=spec.seed, device="cpu", **kwargs)
+    shaped.bind_model(model)
+    callback = _make_callback(spec, writer, fh, progress, switch_task)
+    model.learn(total_timesteps=spec.budget.max_total_steps + 1, callback=callback)
+    shaped.session.close()
+    return callback.episodes, callback.total_steps
+
+
 def _num_actions(env: str) -> int:
-    return {"cartpole": 2, "mountaincar": 3, "maze": 4}[env]
+    return {"cartpole": 2, "mountaincar": 3, "maze": 4, "maze_onehot": 4}[env]
 
 
 # -- the grid --------------------------------------------------------------------------
@@ -415,6 +474,9 @@ def run_grid(
         "failed": [],
     }
     t0 = time.monotonic()
+    # A start record: the report lists what a still-running invocation asked for.
+    with open(out / "invocations.jsonl", "a") as fh:
+        fh.write(json.dumps({**summary, "status": "started"}) + "\n")
     import signal
 
     def _on_term(_sig: int, _frame: Any) -> None:

@@ -12,9 +12,12 @@ from scipy import stats as sps
 __all__ = [
     "Interval",
     "first_solved_episode",
+    "fisher_p",
+    "holm",
     "rolling_mean",
     "t_interval",
     "welch_interval",
+    "welch_p",
 ]
 
 
@@ -103,3 +106,38 @@ def first_solved_episode(
     if hits.size == 0:
         return None
     return int(hits[0]) + window
+
+
+def welch_p(a: Sequence[float], b: Sequence[float]) -> float:
+    """Two-sided p-value of Welch's t-test of equal means (``nan`` if undefined)."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    x = x[~np.isnan(x)]
+    y = y[~np.isnan(y)]
+    if x.size < 2 or y.size < 2:
+        return math.nan
+    if x.var(ddof=1) == 0 and y.var(ddof=1) == 0:
+        return 1.0 if x.mean() == y.mean() else 0.0
+    return float(sps.ttest_ind(x, y, equal_var=False).pvalue)
+
+
+def fisher_p(successes_a: int, n_a: int, successes_b: int, n_b: int) -> float:
+    """Two-sided p-value of Fisher's exact test of equal success rates."""
+    if n_a == 0 or n_b == 0:
+        return math.nan
+    table = [[successes_a, n_a - successes_a], [successes_b, n_b - successes_b]]
+    return float(sps.fisher_exact(table).pvalue)
+
+
+def holm(pvalues: Sequence[float]) -> list[float]:
+    """Holm-Bonferroni adjusted p-values (same order; ``nan`` entries stay ``nan`` and do
+    not count in the family)."""
+    p = np.asarray(pvalues, dtype=np.float64)
+    out = np.full(p.size, math.nan)
+    idx = np.flatnonzero(~np.isnan(p))
+    m = idx.size
+    running = 0.0
+    for rank, i in enumerate(idx[np.argsort(p[idx], kind="stable")]):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out.tolist()

@@ -141,3 +141,23 @@ def test_mountain_car_cap():
         if term or trunc:
             break
     assert n == 50 and trunc and not term
+
+
+def test_maze_random_walk_steps_matches_a_simulation():
+    from tamrm_experiments.envs import maze_random_walk_steps
+
+    exact = maze_random_walk_steps()
+    rng = np.random.default_rng(0)
+    env = MazeEnv(max_steps=100_000)
+    lengths = []
+    for _ in range(300):
+        env.reset()
+        n, done = 0, False
+        while not done:
+            _, _, done, _, _ = env.step(int(rng.integers(4)))
+            n += 1
+        lengths.append(n)
+    # The walk's length has a standard deviation about equal to its mean: 300 walks give
+    # the mean to within ~6% (1 sigma).
+    assert abs(np.mean(lengths) - exact) < 0.2 * exact
+    assert 700 < exact < 900

@@ -52,7 +52,7 @@ def _write_run(out, spec, steps):
 def test_report_tables_from_synthetic_runs(tmp_path):
     runs = tmp_path / "runs"
     totals = {}
-    for spec in make_specs("quick", seeds=3, experiments=["maze"]):
+    for spec in make_specs("quick", seeds=3, experiments=["maze"], variants=["clean"]):
         # TAMRM clearly needs fewer steps than plain; the others are in between.
         base = {"plain": 100, "pbrs": 90, "knn": 80, "tamrm": 20}[spec.arm] + spec.seed
         steps = [base] * spec.budget.episodes
@@ -66,21 +66,37 @@ def test_report_tables_from_synthetic_runs(tmp_path):
     out = tmp_path / "docs" / "reproduction.md"
     write_report(runs, out, tmp_path / "docs" / "reproduction")
     text = out.read_text()
-    assert (tmp_path / "docs" / "reproduction" / "maze.png").is_file()
+    assert (tmp_path / "docs" / "reproduction" / "maze-clean.png").is_file()
     iv = t_interval(totals["tamrm"])
     assert f"{iv.mean:,.0f} [{iv.low:,.0f}, {iv.high:,.0f}]" in text
-    assert "![Maze (DQN)](reproduction/maze.png)" in text
-    assert "TAMRM needs fewer steps than plain DQN" in text
-    closing = text.split("## Closing note")[1]
-    agrees = closing.split("**Disagrees")[0]
-    assert "Maze: TAMRM needs fewer steps than plain DQN" in agrees
+    assert "(reproduction/maze-clean.png)" in text
+    claims = text.split("## Claims")[1].split("## Status")[0]
+    tamrm_row = next(line for line in claims.splitlines() if "TAMRM needs fewer" in line)
+    assert "**holds**" in tamrm_row
+    # PBRS needs fewer steps than plain here, against the paper's claim of more.
+    pbrs_row = next(line for line in claims.splitlines() if "PBRS alone" in line)
+    assert "**does not hold**" in pbrs_row
     for arm in ARMS.values():
         assert arm.label in text
 
 
+def test_a_claim_with_seeds_pending_cannot_be_decided(tmp_path):
+    runs = tmp_path / "runs"
+    for spec in make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"]):
+        _write_run(runs, spec, [50 + spec.seed] * spec.budget.episodes)
+    with open(runs / "invocations.jsonl", "w") as fh:
+        cmd = "python -m tamrm_experiments run --quick --experiments maze --variants clean"
+        fh.write(json.dumps({"command": cmd + " --seeds 5", "runs_todo": 1}) + "\n")
+    out = tmp_path / "reproduction.md"
+    write_report(runs, out, tmp_path / "plots")
+    claims = out.read_text().split("## Claims")[1].split("## Status")[0]
+    row = next(line for line in claims.splitlines() if "TAMRM needs fewer" in line)
+    assert "**cannot be decided yet**" in row and "2 of 5 seeds" in row
+
+
 def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
     runs = tmp_path / "runs"
-    specs = make_specs("quick", seeds=2, experiments=["maze"])
+    specs = make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"])
     for spec in specs:
         _write_run(runs, spec, [50] * spec.budget.episodes)
     out = tmp_path / "reproduction.md"
@@ -90,28 +106,33 @@ def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
     longer = replace(specs[0], budget=replace(specs[0].budget, episodes=9))
     _write_run(runs, longer, [50] * 9)
     write_report(runs, out, tmp_path / "plots")
-    section = out.read_text().split("## Maze (DQN)")[1]
+    section = out.read_text().split("## Maze: clean")[1]
     assert "Mixed budgets" in section
 
 
-def test_incomplete_grid_lists_only_runs_some_invocation_asked_for(tmp_path):
+def test_status_lists_only_runs_some_invocation_asked_for(tmp_path):
     runs = tmp_path / "runs"
-    for spec in make_specs("quick", seeds=1, experiments=["maze"]):
+    for spec in make_specs("quick", seeds=1, experiments=["maze"], variants=["clean"]):
         _write_run(runs, spec, [50] * spec.budget.episodes)
     commands = [
-        "python -m tamrm_experiments run --quick --experiments maze",
+        "python -m tamrm_experiments run --quick --experiments maze --variants clean",
         # Extra seeds for one arm only: the other arms' seed 1 is not missing.
-        "python -m tamrm_experiments run --quick --experiments maze --arms plain --seeds 2",
+        "python -m tamrm_experiments run --quick --experiments maze --variants clean "
+        "--arms plain --seeds 3",
     ]
     with open(runs / "invocations.jsonl", "w") as fh:
         for c in commands:
             fh.write(json.dumps({"command": c, "runs_todo": 1}) + "\n")
     out = tmp_path / "reproduction.md"
     write_report(runs, out, tmp_path / "plots")
-    text = out.read_text()
-    assert "**Incomplete grid**: 1 of 5 runs" in text
-    assert "maze/plain/seed1" in text
-    assert "maze/knn/seed1" not in text
+    status = out.read_text().split("## Status of the grid")[1].split("## Pilot")[0]
+    plain = next(line for line in status.splitlines() if "plain (no shaping)" in line)
+    assert "| 2: 1, 2 |" in plain
+    knn = next(line for line in status.splitlines() if "kNN only" in line)
+    assert knn.endswith("| 0 |")
+    assert "5 runs asked for" not in out.read_text()
+    assert "1 of the 6 runs asked for" not in out.read_text()
+    assert "4 of the 6 runs asked for" in out.read_text()
 
 
 def test_report_does_not_import_the_cli():

@@ -74,11 +74,31 @@ def test_complete_run_is_skipped_and_partial_is_not(tmp_path):
     assert not is_complete(tmp_path, spec)
 
 
-def test_grid_is_seed_major():
+def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
+    from tamrm_experiments.configs import EXPERIMENTS
+
+    per_seed = 4 * sum(len(e.variants) for e in EXPERIMENTS.values())
     specs = make_specs("full", seeds=2)
-    assert len(specs) == 2 * 4 * 4
-    assert {s.seed for s in specs[:16]} == {0}
+    assert len(specs) == 2 * per_seed
+    assert {s.seed for s in specs[:per_seed]} == {0}
     assert len({s.key for s in specs}) == len(specs)
+    authors = make_specs("paper", seeds=1, fidelities=["authors"])
+    assert authors and {s.fidelity for s in authors} == {"authors"}
+    assert {s.experiment for s in authors} == {"cartpole", "mountaincar"}
+    fixed = make_specs("paper", seeds=1, variants=["authors-fixed"], arms=["tamrm"])
+    assert [s.key for s in fixed] == ["cartpole/authors-fixed/tamrm/seed0"]
+    cfg = fixed[0].to_dict()
+    assert cfg["fidelity"] == "authors"
+    assert cfg["task_config"]["gate_potential"] is True
+    assert (cfg["task_config"]["start_step"], cfg["task_config"]["k"]) == (8, 20)
+    pbrs = make_specs("paper", seeds=1, variants=["authors-neg"], arms=["pbrs"])[0]
+    tc = pbrs.task_config()
+    assert (tc["alpha"], tc["beta"], tc["gate_potential"]) == (0.0, -1.0, False)
+    gated = make_specs("paper", seeds=1, variants=["clean-gated"], arms=["tamrm"])
+    assert all(s.task_config()["gate_potential"] for s in gated)
+    assert not any(
+        s.task_config()["gate_potential"] for s in make_specs("paper", 1, variants=["clean"])
+    )
 
 
 def test_busy_minutes_is_the_union_of_invocation_intervals():
@@ -100,3 +120,22 @@ def test_busy_minutes_is_the_union_of_invocation_intervals():
     assert _busy_minutes(invs) == 100
     assert _busy_minutes([*invs, {"started_utc": "2026-01-01T05:00:00Z"}]) == 100  # unfinished
     assert _busy_minutes([]) == 0
+
+
+def test_holm_matches_the_textbook_example():
+    from tamrm_experiments.stats import holm
+
+    # m = 4: sorted 0.01, 0.02, 0.03, 0.5 -> 0.04, 0.06, 0.06 (monotone), 0.5
+    assert holm([0.03, 0.5, 0.01, 0.02]) == pytest.approx([0.06, 0.5, 0.04, 0.06])
+    out = holm([0.04, float("nan")])
+    assert out[0] == pytest.approx(0.04) and math.isnan(out[1])
+
+
+def test_welch_and_fisher_p():
+    from tamrm_experiments.stats import fisher_p, welch_p
+
+    a, b = [10.0, 12.0, 9.5, 11.0, 13.5], [7.0, 8.5, 6.0, 9.0, 7.5, 8.0]
+    assert welch_p(a, b) == pytest.approx(sps.ttest_ind(a, b, equal_var=False).pvalue)
+    assert math.isnan(welch_p([1.0], b))
+    assert fisher_p(10, 10, 0, 10) < 0.001
+    assert fisher_p(5, 10, 5, 10) == pytest.approx(1.0)

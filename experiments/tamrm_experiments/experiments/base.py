@@ -14,7 +14,47 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-__all__ = ["ARMS", "DQN_COMMON", "Arm", "Budget", "ExperimentDef", "Metric", "claim_word"]
+__all__ = [
+    "ARMS",
+    "CLEAN_VARIANTS",
+    "DQN_COMMON",
+    "FIDELITIES",
+    "Arm",
+    "Budget",
+    "Claim",
+    "ExperimentDef",
+    "Metric",
+    "Variant",
+    "claim_word",
+]
+
+#: ``clean``: Stable-Baselines3 learners and SPEC defaults where the paper is silent;
+#: ``authors``: the authors' published code's learners, environments, gating and signs.
+FIDELITIES = ("clean", "authors")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One setting of an experiment, run with every arm.
+
+    Attributes:
+        name: Directory name of its runs (``clean``, ``authors-fixed``, ...).
+        fidelity: ``"clean"`` or ``"authors"``.
+        label: Human label.
+        settings: What the variant changes (recorded in each run's JSON). For ``clean``:
+            ``gate_potential``. For ``authors``: the learner, the task configuration of the
+            TAMRM arm (``pool_capacity``, ``k``, ``start_step``, ``alpha``, ``beta``,
+            ``gamma``), ``pbrs_beta`` (their PBRS-only line), ``terminal_reward`` (their
+            override of the reward of a terminal step), and environment switches.
+        budgets: Budgets per profile replacing the experiment's (e.g. a larger episode cap
+            for the unwrapped mountain car).
+    """
+
+    name: str
+    fidelity: str
+    label: str
+    settings: dict[str, Any] = field(default_factory=dict)
+    budgets: dict[str, Budget] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -67,6 +107,22 @@ class Budget:
 
 
 @dataclass(frozen=True)
+class Claim:
+    """One of the paper's claims about an experiment: ``arm`` vs plain on ``metric``.
+
+    ``direction`` is the sign the paper claims for (arm - plain): -1 "fewer steps", +1
+    "more steps kept up" / "solved more often". The metric ``solved`` (0/1 per seed) is
+    tested with Fisher's exact test, every other with Welch's t-test.
+    """
+
+    text: str
+    paper: str
+    arm: str
+    metric: str
+    direction: int
+
+
+@dataclass(frozen=True)
 class Metric:
     """A per-run number; ``lower_is_better`` says which direction is an improvement."""
 
@@ -94,6 +150,7 @@ class ExperimentDef:
         switch_after: Modified maze: episodes after which the start moves and the
             shaping arms switch to a fresh task (pool).
         score_from_info: Send ``info["episode_score"]`` as the episode score.
+        variants: The settings it is run in (see :class:`Variant`).
     """
 
     name: str
@@ -107,6 +164,18 @@ class ExperimentDef:
     budgets: dict[str, Budget] = field(default_factory=dict)
     switch_after: int | None = None
     score_from_info: bool = False
+    variants: tuple[Variant, ...] = ()
+
+    def variant(self, name: str) -> Variant:
+        """The variant called ``name``."""
+        for v in self.variants:
+            if v.name == name:
+                return v
+        raise KeyError(f"{self.name} has no variant {name!r}")
+
+    def budget(self, profile: str, variant: str) -> Budget:
+        """The budget of ``variant`` in ``profile``."""
+        return self.variant(variant).budgets.get(profile) or self.budgets[profile]
 
     # -- what the report needs; subclasses override ------------------------------------
 
@@ -119,12 +188,8 @@ class ExperimentDef:
     headline: ClassVar[str] = "total_steps"
     #: The paper's number (or words) per arm.
     paper: ClassVar[dict[str, str]] = {}
-    #: The paper's claim about TAMRM, for the summary (``"TAMRM needs fewer ..."``).
-    claim: ClassVar[str] = ""
-    #: The same claim, as a statement checked in the closing note.
-    claim_check: ClassVar[str] = ""
-    #: Whether the paper claims that PBRS alone does not help here.
-    pbrs_claim: ClassVar[bool] = False
+    #: The paper's claims about this experiment, checked in the report's claims table.
+    claims: ClassVar[tuple[Claim, ...]] = ()
     #: Plot: episodes of the trailing mean.
     plot_window: ClassVar[int] = 10
 
@@ -148,25 +213,6 @@ class ExperimentDef:
     def status_cell(self, metrics: list[dict[str, float]], censored: int) -> str:
         """The status cell of one arm."""
         return f"{censored}/{len(metrics)}"
-
-    def agreement(self, comps: dict[str, Any], metrics: dict[str, list], verdict: Any) -> str:
-        """One sentence: does our measurement agree with the paper's claim?
-
-        ``verdict(arm)`` words an arm's comparison with plain.
-        """
-        tam = comps.get("tamrm")
-        agree = claim_word(tam.better if tam is not None else None)
-        extra = ""
-        if self.pbrs_claim and comps.get("pbrs") is not None:
-            extra = f" PBRS only is {verdict('pbrs')}."
-        return (
-            f"- **{self.title}**: TAMRM is {verdict('tamrm')}; kNN only is {verdict('knn')}."
-            f"{extra} The paper's claim ({self.claim}): {agree}."
-        )
-
-    def extra_claims(self, metrics: dict[str, list]) -> list[tuple[str, str]]:
-        """Claims beyond "TAMRM better" and "PBRS not better": (statement, verdict)."""
-        return []
 
     # -- plot --------------------------------------------------------------------------
 
@@ -193,3 +239,11 @@ def claim_word(better: bool | None) -> str:
         False: "contradicted (TAMRM significantly worse than plain)",
         None: "not reproduced (no difference detectable at 95% with these seeds)",
     }[better]
+
+
+#: The clean variants every experiment has: SPEC defaults, the potential term ungated (as
+#: the first report ran) and gated to the kNN window (SPEC v1.1 ``gate_potential``).
+CLEAN_VARIANTS: tuple[Variant, ...] = (
+    Variant("clean", "clean", "clean (SB3, gate_potential off)", {"gate_potential": False}),
+    Variant("clean-gated", "clean", "clean (SB3, gate_potential on)", {"gate_potential": True}),
+)

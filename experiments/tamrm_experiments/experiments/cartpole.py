@@ -8,7 +8,15 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from tamrm_experiments.experiments.base import ARMS, Budget, ExperimentDef, Metric, mean_or_nan
+from tamrm_experiments.experiments.base import (
+    CLEAN_VARIANTS,
+    Budget,
+    Claim,
+    ExperimentDef,
+    Metric,
+    Variant,
+    mean_or_nan,
+)
 from tamrm_experiments.stats import first_solved_episode
 
 __all__ = ["CARTPOLE", "CartPole"]
@@ -29,8 +37,23 @@ class CartPole(ExperimentDef):
         "knn": "not run",
         "tamrm": "solved at episode 455",
     }
-    claim_check: ClassVar[str] = "TAMRM learns faster than plain A2C (mean steps per episode)"
-    pbrs_claim: ClassVar[bool] = True
+    claims: ClassVar[tuple[Claim, ...]] = (
+        Claim(
+            "TAMRM solves cart pole within the budget (mean of 100 episodes >= 195) more "
+            "often than plain",
+            "TAMRM solved at episode 455; plain and PBRS never in 1000 episodes",
+            "tamrm",
+            "solved",
+            +1,
+        ),
+        Claim(
+            "TAMRM keeps the pole up longer than plain (mean steps per episode)",
+            "Fig. 4: TAMRM above plain",
+            "tamrm",
+            "mean_steps",
+            +1,
+        ),
+    )
     plot_window: ClassVar[int] = 20
     plot_log: ClassVar[bool] = False
 
@@ -50,47 +73,6 @@ class CartPole(ExperimentDef):
     def status_cell(self, metrics: list[dict[str, float]], censored: int) -> str:
         return f"{int(sum(m['solved'] for m in metrics))}/{len(metrics)}"
 
-    def agreement(self, comps: dict[str, Any], metrics: dict[str, list], verdict: Any) -> str:
-        solved = {a: _solved(ms) for a, ms in metrics.items() if ms}
-        s = ", ".join(f"{_label(a)} {k}/{n}" for a, (k, n) in solved.items())
-        none = (0, 1)
-        paper_ok = (
-            solved.get("tamrm", none)[0] > 0
-            and solved.get("plain", none)[0] == 0
-            and solved.get("pbrs", none)[0] == 0
-        )
-        tam = comps.get("tamrm")
-        if paper_ok and tam is not None and tam.better:
-            agree = "reproduced"
-        elif tam is not None and tam.better is False:
-            agree = "contradicted (TAMRM is worse than plain)"
-        elif solved.get("plain", none)[0] > 0 and solved.get("tamrm", none)[0] == 0:
-            agree = "contradicted (plain solves, TAMRM does not)"
-        else:
-            agree = "not reproduced"
-        return (
-            f"- **{self.title}**: seeds solved: {s}. TAMRM is {verdict('tamrm')} on mean steps "
-            f"per episode; PBRS only {verdict('pbrs')}; kNN only {verdict('knn')}. The paper's "
-            f"claim (TAMRM solves, plain and PBRS do not): {agree}."
-        )
-
-    def extra_claims(self, metrics: dict[str, list]) -> list[tuple[str, str]]:
-        solved = {a: _solved(ms) for a, ms in metrics.items() if ms}
-        tam, plain = solved.get("tamrm", (0, 0)), solved.get("plain", (0, 0))
-        if tam[0] > 0 and plain[0] == 0:
-            verdict = "reproduced"
-        elif plain[0] >= tam[0] and plain[0] > 0:
-            verdict = "contradicted"
-        else:
-            verdict = "undecided"
-        return [
-            (
-                f"{self.short}: TAMRM solves (paper: episode 455) while plain A2C does not "
-                f"(we: TAMRM {tam[0]}/{tam[1]} seeds, plain {plain[0]}/{plain[1]})",
-                verdict,
-            )
-        ]
-
     def plot_ylabel(self) -> str:
         return f"steps kept up (mean of last {self.plot_window} episodes)"
 
@@ -98,13 +80,41 @@ class CartPole(ExperimentDef):
         ax.axhline(195, color="k", ls=":", lw=0.8)
 
 
-def _solved(ms: list[dict[str, float]]) -> tuple[int, int]:
-    return int(sum(m["solved"] for m in ms)), len(ms)
-
-
-def _label(arm: str) -> str:
-    return ARMS[arm].label
-
+#: The authors' cart pole (``Carpole_test/carpole.py``): their one-step actor-critic on the
+#: unwrapped ``CartPole-v1`` (pole limit 12 degrees), episodes cut at 200 steps; their
+#: shaping line ``r += 0.8 * (predict_modified + 0.9 V(s') - V(s))`` only while the pool of
+#: 30 is full and 8 <= t < L_min - 1 (top 20 neighbours); their PBRS line
+#: ``r += 0.9 V(s') - V(s)`` on every step; then ``if done: r = -1`` (the terminal override,
+#: after the shaping); episode score = steps kept up. ``fixed_start``: their
+#: ``env.seed(2)`` before every reset (here the run's seed: one start state per run).
+AUTHORS_SETTINGS = {
+    "learner": "actor_critic",
+    "tamrm": {
+        "pool_capacity": 30,
+        "k": 20,
+        "start_step": 8,
+        "alpha": 0.8,
+        "beta": 0.8,
+        "gamma": 0.9,
+    },
+    "pbrs_beta": 1.0,
+    "terminal_reward": -1.0,
+    "freeze_when_solved": True,
+}
+AUTHORS_VARIANTS = (
+    Variant(
+        "authors-fixed",
+        "authors",
+        "authors (their actor-critic, fixed start)",
+        {**AUTHORS_SETTINGS, "fixed_start": True},
+    ),
+    Variant(
+        "authors-random",
+        "authors",
+        "authors (their actor-critic, random start)",
+        {**AUTHORS_SETTINGS, "fixed_start": False},
+    ),
+)
 
 CARTPOLE = CartPole(
     name="cartpole",
@@ -123,4 +133,5 @@ CARTPOLE = CartPole(
         "paper": Budget(episodes=1000, max_episode_steps=200, max_total_steps=200_000),
         "quick": Budget(episodes=30, max_episode_steps=200, max_total_steps=3_000),
     },
+    variants=(*CLEAN_VARIANTS, *AUTHORS_VARIANTS),
 )

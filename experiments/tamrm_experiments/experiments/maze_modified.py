@@ -8,7 +8,14 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
-from tamrm_experiments.experiments.base import Budget, ExperimentDef, Metric, mean_or_nan
+from tamrm_experiments.experiments.base import (
+    CLEAN_VARIANTS,
+    Budget,
+    Claim,
+    ExperimentDef,
+    Metric,
+    mean_or_nan,
+)
 from tamrm_experiments.experiments.maze import MAZE_SETUP
 
 __all__ = ["MAZE_MODIFIED", "MazeModified"]
@@ -29,9 +36,14 @@ class MazeModified(ExperimentDef):
         "knn": "not run",
         "tamrm": "Fig. 10: adapts faster (no number given)",
     }
-    claim: ClassVar[str] = "TAMRM with a fresh pool adapts to the new start faster than plain DQN"
-    claim_check: ClassVar[str] = (
-        "after the start moves, TAMRM (fresh pool) needs fewer steps than plain DQN"
+    claims: ClassVar[tuple[Claim, ...]] = (
+        Claim(
+            "After the start moves, TAMRM (fresh pool) needs fewer steps than plain",
+            "Fig. 10: TAMRM adapts faster (no number given)",
+            "tamrm",
+            "phase2_steps",
+            -1,
+        ),
     )
 
     def extra_metrics(self, df: pd.DataFrame, meta: dict[str, Any], unfinished: float) -> dict:
@@ -63,4 +75,5 @@ MAZE_MODIFIED = MazeModified(
         ),
         "quick": Budget(episodes=6, max_episode_steps=200, max_total_steps=1_500, switch_after=3),
     },
+    variants=CLEAN_VARIANTS,
 )

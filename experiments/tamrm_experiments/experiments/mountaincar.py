@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from tamrm_experiments.experiments.base import DQN_COMMON, Budget, ExperimentDef
+from tamrm_experiments.experiments.base import (
+    CLEAN_VARIANTS,
+    DQN_COMMON,
+    Budget,
+    Claim,
+    ExperimentDef,
+    Variant,
+)
 
 __all__ = ["MOUNTAINCAR", "MountainCar"]
 
@@ -18,10 +25,61 @@ class MountainCar(ExperimentDef):
         "knn": "not run",
         "tamrm": "Fig. 6: fewest steps (no number given)",
     }
-    claim: ClassVar[str] = "TAMRM needs fewer steps than plain DQN and DQN + PBRS"
-    claim_check: ClassVar[str] = "TAMRM needs fewer steps than plain DQN"
-    pbrs_claim: ClassVar[bool] = True
+    claims: ClassVar[tuple[Claim, ...]] = (
+        Claim(
+            "TAMRM needs fewer total steps than plain over 500 episodes",
+            "Fig. 6: TAMRM fewest steps (no number given)",
+            "tamrm",
+            "total_steps",
+            -1,
+        ),
+    )
 
+
+def _authors(sign: float) -> dict:
+    return {
+        "learner": "tutorial_dqn",
+        "tamrm": {
+            "pool_capacity": 20,
+            "k": 20,
+            "start_step": 10,
+            "alpha": sign,
+            "beta": sign,
+            "gamma": 0.9,
+        },
+        "pbrs_beta": sign,
+        "terminal_reward": 10.0,
+    }
+
+
+#: The authors' mountain car (``MountainCar_test/run_MountainCar.py``): their tutorial DQN
+#: on the unwrapped ``MountainCar-v0`` (no 200-step limit); shaping
+#: ``reward += -1 * predict_modified - 1 * (0.9 max Q_target(s') - max Q(s))`` while the
+#: pool of 20 is full and 10 <= t < L_min - 1 (top 20); then ``if done: reward = 10``;
+#: score = the return (-steps). ``authors-neg`` is their code's sign, ``authors-pos`` the
+#: paper's (alpha = beta = +1). The episode cap is only a safety net (their first episodes
+#: took ~30 000 random steps).
+AUTHORS_BUDGETS = {
+    "paper": Budget(episodes=500, max_episode_steps=100_000, max_total_steps=3_000_000),
+    "full": Budget(episodes=500, max_episode_steps=100_000, max_total_steps=3_000_000),
+    "quick": Budget(episodes=2, max_episode_steps=300, max_total_steps=600),
+}
+AUTHORS_VARIANTS = (
+    Variant(
+        "authors-neg",
+        "authors",
+        "authors (their DQN, their signs: alpha = beta = -1)",
+        _authors(-1.0),
+        AUTHORS_BUDGETS,
+    ),
+    Variant(
+        "authors-pos",
+        "authors",
+        "authors (their DQN, the paper's signs: alpha = beta = +1)",
+        _authors(1.0),
+        AUTHORS_BUDGETS,
+    ),
+)
 
 MOUNTAINCAR = MountainCar(
     name="mountaincar",
@@ -44,4 +102,5 @@ MOUNTAINCAR = MountainCar(
         "paper": Budget(episodes=500, max_episode_steps=10_000, max_total_steps=1_000_000),
         "quick": Budget(episodes=3, max_episode_steps=400, max_total_steps=1_500),
     },
+    variants=(*CLEAN_VARIANTS, *AUTHORS_VARIANTS),
 )
