@@ -40,15 +40,25 @@ def test_config_fields_constant() -> None:
     assert list(tamrm.CONFIG_FIELDS) == PROTO_FIELDS
 
 
-@pytest.mark.parametrize("cls", [tamrm.Client, tamrm.aio.Client], ids=["sync", "aio"])
-def test_create_task_takes_every_field(cls: type) -> None:
-    params = inspect.signature(cls.create_task).parameters
-    keywords = [n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY]
-    assert keywords == PROTO_FIELDS
-    hints = typing.get_type_hints(cls.create_task)
+def test_task_options_have_every_field() -> None:
+    assert list(tamrm.TaskOptions.__annotations__) == PROTO_FIELDS
+    hints = typing.get_type_hints(tamrm.TaskOptions)
     for field in shaping_pb2.TaskConfig.DESCRIPTOR.fields:
         assert hints[field.name] == PY_TYPES[field.type] | None, field.name
-        assert params[field.name].default is None, field.name
+    assert tamrm.TaskOptions.__required_keys__ == frozenset()
+
+
+@pytest.mark.parametrize("cls", [tamrm.Client, tamrm.aio.Client], ids=["sync", "aio"])
+def test_create_task_takes_task_options(cls: type) -> None:
+    params = list(inspect.signature(cls.create_task).parameters.values())
+    assert [p.name for p in params] == ["self", "task_id", "config"]
+    assert params[2].kind is inspect.Parameter.VAR_KEYWORD
+    assert params[2].annotation == "Unpack[TaskOptions]"
+
+
+def test_create_task_rejects_unknown_keywords(client: tamrm.Client) -> None:
+    with pytest.raises(TypeError, match="no_such_field"):
+        client.create_task("t/unknown-keyword", num_actions=2, no_such_field=1)  # type: ignore[call-arg]
 
 
 def test_task_config_dataclass_has_every_field() -> None:

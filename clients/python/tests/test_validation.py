@@ -9,10 +9,18 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import tamrm
-from tamrm._batch import prepare_batch
+from tamrm._batch import PreparedBatch, StepInput
+from tamrm._batch import prepare_batch as _prepare_batch
 
 INT_DTYPES = st.sampled_from([np.int64, np.int32, np.int16, np.uint8, np.uint32, np.uint64])
 REAL_DTYPES = st.sampled_from([np.float64, np.float32, np.int64, np.int32])
+
+
+def prepare_batch(
+    config: tamrm.TaskConfig, num_envs: int, *args: object, **kwargs: object
+) -> PreparedBatch:
+    """The step's arguments as ``Session.step`` takes them."""
+    return _prepare_batch(config, num_envs, StepInput(*args, **kwargs))  # type: ignore[arg-type]
 
 
 def discrete_config(n: int) -> tamrm.TaskConfig:

@@ -40,6 +40,7 @@ from tamrm._types import (
     StepResult,
     Task,
     TaskConfig,
+    TaskOptions,
     TaskStats,
     Trajectory,
 )
@@ -71,6 +72,7 @@ __all__ = [
     "Task",
     "TaskConfig",
     "TaskNotFound",
+    "TaskOptions",
     "TaskStats",
     "Trajectory",
     "Unavailable",

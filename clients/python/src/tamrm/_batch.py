@@ -19,9 +19,25 @@ import numpy.typing as npt
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import TaskConfig
 
-__all__ = ["PreparedBatch", "prepare_batch", "prepare_trajectory"]
+__all__ = ["PreparedBatch", "StepInput", "prepare_batch", "prepare_trajectory"]
 
 _UINT32_MAX = 2**32 - 1
+
+
+@dataclass(frozen=True)
+class StepInput:
+    """The arguments of one :meth:`tamrm.Session.step`, as the caller gave them."""
+
+    actions: npt.ArrayLike
+    rewards: npt.ArrayLike
+    terminated: npt.ArrayLike | None = None
+    truncated: npt.ArrayLike | None = None
+    values: npt.ArrayLike | None = None
+    next_values: npt.ArrayLike | None = None
+    q_values: npt.ArrayLike | None = None
+    next_q_values: npt.ArrayLike | None = None
+    episode_scores: npt.ArrayLike | Mapping[int, float] | None = None
+    env_ids: npt.ArrayLike | None = None
 
 
 @dataclass(frozen=True)
@@ -38,7 +54,7 @@ class PreparedBatch:
         return int(self.env_ids.shape[0])
 
 
-def _array(name: str, value: Any) -> npt.NDArray[Any]:
+def _array(name: str, value: object) -> npt.NDArray[Any]:
     if value is None:
         raise TypeError(f"{name} must be an array, got None")
     try:
@@ -53,7 +69,7 @@ def _check_shape(name: str, arr: npt.NDArray[Any], shape: tuple[int, ...]) -> No
         raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
 
 
-def _real(name: str, value: Any, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
+def _real(name: str, value: object, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
     arr = _array(name, value)
     if arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must hold real numbers (int or float), got dtype {arr.dtype}")
@@ -61,7 +77,7 @@ def _real(name: str, value: Any, shape: tuple[int, ...]) -> npt.NDArray[np.float
     return arr.astype(np.float64, copy=False)
 
 
-def _flags(name: str, value: Any, size: int) -> npt.NDArray[np.bool_]:
+def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
     if value is None:
         return np.zeros(size, dtype=np.bool_)
     arr = _array(name, value)
@@ -76,46 +92,85 @@ def _flags(name: str, value: Any, size: int) -> npt.NDArray[np.bool_]:
     return arr.astype(np.bool_, copy=False)
 
 
-def _discrete_actions(name: str, value: Any, size: int, num_actions: int) -> npt.NDArray[np.int64]:
-    arr = _array(name, value)
-    if arr.dtype.kind not in "iu":
-        raise TypeError(
-            f"{name} must hold integer actions for a discrete task, got dtype {arr.dtype}"
-        )
-    _check_shape(name, arr, (size,))
+def _add_actions(batch: pb.StepBatch, config: TaskConfig, value: object, size: int) -> None:
+    """Check the actions against the task and write them to ``actions``/``action_vectors``."""
+    arr = _array("actions", value)
+    shape: tuple[int, ...]
+    if config.discrete:
+        kinds, what, shape = "iu", "integer actions for a discrete task", (size,)
+    else:
+        kinds, what = "iuf", "real action vectors for a continuous task"
+        shape = (size, config.action_dim)
+    if arr.dtype.kind not in kinds:
+        raise TypeError(f"actions must hold {what}, got dtype {arr.dtype}")
+    _check_shape("actions", arr, shape)
+    if not config.discrete:
+        batch.action_vectors.extend(arr.astype(np.float32, copy=False).ravel().tolist())
+        return
     if arr.size:
         lo, hi = int(arr.min()), int(arr.max())
-        if lo < 0 or hi >= num_actions:
+        if lo < 0 or hi >= config.num_actions:
             bad = lo if lo < 0 else hi
-            raise ValueError(f"{name} must be in 0..{num_actions - 1}, got {bad}")
-    return arr.astype(np.int64, copy=False)
+            raise ValueError(f"actions must be in 0..{config.num_actions - 1}, got {bad}")
+    batch.actions.extend(arr.astype(np.int64, copy=False).tolist())
 
 
-def _vector_actions(name: str, value: Any, size: int, action_dim: int) -> npt.NDArray[np.float32]:
-    arr = _array(name, value)
-    if arr.dtype.kind not in "iuf":
-        raise TypeError(
-            f"{name} must hold real action vectors for a continuous task, got dtype {arr.dtype}"
+def _env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | None:
+    """The ``env_ids`` argument as ``int64``, or ``None`` for "row i is env i"."""
+    if value is None:
+        return None
+    arr = _array("env_ids", value)
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"env_ids must hold integers, got dtype {arr.dtype}")
+    if arr.ndim != 1:
+        raise ValueError(f"env_ids must be one-dimensional, got shape {arr.shape}")
+    ids = arr.astype(np.int64, copy=False)
+    if ids.size and (int(ids.min()) < 0 or int(ids.max()) >= num_envs):
+        raise ValueError(f"env_ids must be in 0..{num_envs - 1}")
+    return ids
+
+
+def _add_values(batch: pb.StepBatch, config: TaskConfig, step: StepInput, size: int) -> None:
+    """Check the (optional) state values or Q-values and write them to the batch."""
+    if (step.values is None) != (step.next_values is None):
+        raise TypeError("values and next_values must be given together")
+    if (step.q_values is None) != (step.next_q_values is None):
+        raise TypeError("q_values and next_q_values must be given together")
+    if step.values is not None and step.q_values is not None:
+        raise TypeError("give either values/next_values or q_values/next_q_values, not both")
+    if step.values is not None:
+        batch.values.extend(_real("values", step.values, (size,)).tolist())
+        batch.next_values.extend(_real("next_values", step.next_values, (size,)).tolist())
+    if step.q_values is not None:
+        if not config.discrete:
+            raise ValueError("q_values are only accepted by discrete tasks (num_actions > 0)")
+        shape = (size, config.num_actions)
+        batch.q_values.extend(_real("q_values", step.q_values, shape).ravel().tolist())
+        batch.next_q_values.extend(
+            _real("next_q_values", step.next_q_values, shape).ravel().tolist()
         )
-    _check_shape(name, arr, (size, action_dim))
-    return arr.astype(np.float32, copy=False)
 
 
-def prepare_batch(
-    config: TaskConfig,
-    num_envs: int,
-    actions: Any,
-    rewards: Any,
-    terminated: Any = None,
-    truncated: Any = None,
-    *,
-    values: Any = None,
-    next_values: Any = None,
-    q_values: Any = None,
-    next_q_values: Any = None,
-    episode_scores: Any = None,
-    env_ids: Any = None,
-) -> PreparedBatch:
+def _scores(
+    value: npt.ArrayLike | Mapping[int, float], done: npt.NDArray[np.bool_]
+) -> dict[int, float]:
+    """``{row: score}`` from the ``episode_scores`` argument (an array or a mapping)."""
+    size = int(done.shape[0])
+    if not isinstance(value, Mapping):
+        sc = _real("episode_scores", value, (size,))
+        rows = np.flatnonzero(done & ~np.isnan(sc))
+        return dict(zip(rows.tolist(), sc[rows].tolist(), strict=True))
+    scores: dict[int, float] = {}
+    for key, score in value.items():
+        if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
+            raise TypeError("episode_scores keys must be row indices (int)")
+        if not 0 <= int(key) < size:
+            raise ValueError(f"episode_scores key {key} is not a row index < {size}")
+        scores[int(key)] = float(score)
+    return scores
+
+
+def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> PreparedBatch:
     """Validate one step's arrays and build its ``ShapeRequest``.
 
     See :meth:`tamrm.Session.step` for the meaning of the arguments.
@@ -124,78 +179,32 @@ def prepare_batch(
         TypeError: An argument has the wrong dtype, or only one of a pair was given.
         ValueError: An argument has the wrong shape or an out-of-range entry.
     """
-    if env_ids is None:
-        size = num_envs
-        ids = np.arange(num_envs, dtype=np.int64)
-        send_ids: list[int] = []
-    else:
-        arr = _array("env_ids", env_ids)
-        if arr.dtype.kind not in "iu":
-            raise TypeError(f"env_ids must hold integers, got dtype {arr.dtype}")
-        if arr.ndim != 1:
-            raise ValueError(f"env_ids must be one-dimensional, got shape {arr.shape}")
-        ids = arr.astype(np.int64, copy=False)
-        if ids.size and (int(ids.min()) < 0 or int(ids.max()) >= num_envs):
-            raise ValueError(f"env_ids must be in 0..{num_envs - 1}")
-        size = int(ids.shape[0])
-        send_ids = ids.tolist()
+    given_ids = _env_ids(step.env_ids, num_envs)
+    ids = np.arange(num_envs, dtype=np.int64) if given_ids is None else given_ids
+    size = int(ids.shape[0])
 
-    rew = _real("rewards", rewards, (size,))
-    term = _flags("terminated", terminated, size)
-    trunc = _flags("truncated", truncated, size)
+    rew = _real("rewards", step.rewards, (size,))
+    term = _flags("terminated", step.terminated, size)
+    trunc = _flags("truncated", step.truncated, size)
     done = term | trunc
 
-    batch = pb.StepBatch(env_ids=send_ids, rewards=rew.tolist())
-    if terminated is not None and term.any():
+    batch = pb.StepBatch(
+        env_ids=[] if given_ids is None else given_ids.tolist(), rewards=rew.tolist()
+    )
+    if step.terminated is not None and term.any():
         batch.terminated.extend(term.tolist())
-    if truncated is not None and trunc.any():
+    if step.truncated is not None and trunc.any():
         batch.truncated.extend(trunc.tolist())
-
-    if config.discrete:
-        batch.actions.extend(
-            _discrete_actions("actions", actions, size, config.num_actions).tolist()
-        )
-    else:
-        batch.action_vectors.extend(
-            _vector_actions("actions", actions, size, config.action_dim).ravel().tolist()
-        )
-
-    if (values is None) != (next_values is None):
-        raise TypeError("values and next_values must be given together")
-    if (q_values is None) != (next_q_values is None):
-        raise TypeError("q_values and next_q_values must be given together")
-    if values is not None and q_values is not None:
-        raise TypeError("give either values/next_values or q_values/next_q_values, not both")
-    if values is not None:
-        batch.values.extend(_real("values", values, (size,)).tolist())
-        batch.next_values.extend(_real("next_values", next_values, (size,)).tolist())
-    if q_values is not None:
-        if not config.discrete:
-            raise ValueError("q_values are only accepted by discrete tasks (num_actions > 0)")
-        shape = (size, config.num_actions)
-        batch.q_values.extend(_real("q_values", q_values, shape).ravel().tolist())
-        batch.next_q_values.extend(_real("next_q_values", next_q_values, shape).ravel().tolist())
-
-    if episode_scores is not None:
-        if isinstance(episode_scores, Mapping):
-            scores: dict[int, float] = {}
-            for key, score in episode_scores.items():
-                if isinstance(key, bool) or not isinstance(key, (int, np.integer)):
-                    raise TypeError("episode_scores keys must be row indices (int)")
-                if not 0 <= int(key) < size:
-                    raise ValueError(f"episode_scores key {key} is not a row index < {size}")
-                scores[int(key)] = float(score)
-        else:
-            sc = _real("episode_scores", episode_scores, (size,))
-            rows = np.flatnonzero(done & ~np.isnan(sc))
-            scores = dict(zip(rows.tolist(), sc[rows].tolist(), strict=True))
-        for key, score in scores.items():
+    _add_actions(batch, config, step.actions, size)
+    _add_values(batch, config, step, size)
+    if step.episode_scores is not None:
+        for key, score in _scores(step.episode_scores, done).items():
             batch.episode_scores[key] = score
 
     return PreparedBatch(request=pb.ShapeRequest(steps=batch), env_ids=ids, done=done)
 
 
-def prepare_trajectory(actions: Any, score: float) -> pb.Trajectory:
+def prepare_trajectory(actions: npt.ArrayLike, score: float) -> pb.Trajectory:
     """Build a ``Trajectory`` message from an action array and a score.
 
     A one-dimensional integer array is a discrete trajectory (``actions``); a

@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from types import TracebackType
-from typing import Any, TypeVar
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import grpc
+import numpy.typing as npt
 
-from tamrm._batch import prepare_trajectory
+from tamrm import _ops as ops
+from tamrm._closing import Closing
 from tamrm._errors import Unavailable, from_rpc_error
-from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 from tamrm._session import Session
-from tamrm._types import AddTrajectoryResult, Pool, Task, Trajectory, config_to_pb
+from tamrm._types import AddTrajectoryResult, Pool, Task, TaskOptions
 
-__all__ = ["DEFAULT_TIMEOUT", "Client", "make_channel_options"]
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
+__all__ = ["DEFAULT_TIMEOUT", "Client", "ClientCore", "make_channel_options"]
 
 #: Default deadline, in seconds, of every unary call (not of ``Shape`` streams).
 DEFAULT_TIMEOUT = 30.0
@@ -36,15 +39,34 @@ def make_channel_options(
     return list(base.items())
 
 
-def _pool_from_pb(msg: pb.Pool, action_dim: int) -> Pool:
-    return Pool(
-        task_id=msg.task_id,
-        pool_version=int(msg.pool_version),
-        trajectories=[Trajectory._from_pb(t, action_dim) for t in msg.trajectories],
-    )
+class ClientCore:
+    """What the sync and asyncio clients share: the channel's settings, stub and metadata."""
+
+    def __init__(
+        self,
+        target: str,
+        *,
+        timeout: float | None = DEFAULT_TIMEOUT,
+        credentials: grpc.ChannelCredentials | None = None,
+        options: Sequence[tuple[str, Any]] | None = None,
+        metadata: Sequence[tuple[str, str]] | None = None,
+    ) -> None:
+        self.target = target
+        self.timeout = timeout
+        self._channel = self._make_channel(target, credentials, make_channel_options(options))
+        self._stub = pb_grpc.ShapingStub(self._channel)
+        self._metadata = tuple(metadata) if metadata else None
+
+    def _make_channel(
+        self,
+        target: str,
+        credentials: grpc.ChannelCredentials | None,
+        options: list[tuple[str, Any]],
+    ) -> Any:
+        raise NotImplementedError
 
 
-class Client:
+class Client(ClientCore, Closing):
     """A connection to a tamrm server.
 
     Every method takes and returns plain Python / numpy values and raises a
@@ -66,50 +88,35 @@ class Client:
         metadata: Metadata (e.g. an authorization header) sent with every call.
     """
 
-    def __init__(
+    def _make_channel(
         self,
         target: str,
-        *,
-        timeout: float | None = DEFAULT_TIMEOUT,
-        credentials: grpc.ChannelCredentials | None = None,
-        options: Sequence[tuple[str, Any]] | None = None,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
-        self.target = target
-        self.timeout = timeout
-        opts = make_channel_options(options)
+        credentials: grpc.ChannelCredentials | None,
+        options: list[tuple[str, Any]],
+    ) -> grpc.Channel:
         if credentials is None:
-            self._channel = grpc.insecure_channel(target, options=opts)
-        else:
-            self._channel = grpc.secure_channel(target, credentials, options=opts)
-        self._stub = pb_grpc.ShapingStub(self._channel)
-        self._metadata = tuple(metadata) if metadata else None
+            return grpc.insecure_channel(target, options=options)
+        return grpc.secure_channel(target, credentials, options=options)
 
-    def _call(self, method: Callable[..., _T], request: Any) -> _T:
+    def _call(self, rpc: ops.Rpc) -> Any:
+        method = getattr(self._stub, rpc.method)
         try:
-            return method(request, timeout=self.timeout, metadata=self._metadata)
+            return method(rpc.request, timeout=self.timeout, metadata=self._metadata)
         except grpc.RpcError as exc:
             raise from_rpc_error(exc) from None
 
+    def _run(self, op: ops.Op[_T]) -> _T:
+        return ops.run(op, self._call)
+
     # -- tasks -----------------------------------------------------------------------
 
-    def create_task(
-        self,
-        task_id: str,
-        *,
-        num_actions: int | None = None,
-        action_dim: int | None = None,
-        pool_capacity: int | None = None,
-        k: int | None = None,
-        start_step: int | None = None,
-        min_pool_size: int | None = None,
-        alpha: float | None = None,
-        beta: float | None = None,
-        gamma: float | None = None,
-        max_trajectory_len: int | None = None,
-        gate_potential: bool | None = None,
-    ) -> Task:
-        """Create a task; arguments left ``None`` take the server's defaults (SPEC §1.1).
+    def create_task(self, task_id: str, **config: Unpack[TaskOptions]) -> Task:
+        """Create a task; keywords left out (or ``None``) take the server's defaults.
+
+        The keywords are exactly the ``TaskConfig`` fields (:data:`tamrm.CONFIG_FIELDS`,
+        typed by :class:`tamrm.TaskOptions`; SPEC §1.1): ``num_actions``, ``action_dim``,
+        ``pool_capacity``, ``k``, ``start_step``, ``min_pool_size``, ``alpha``, ``beta``,
+        ``gamma``, ``max_trajectory_len``, ``gate_potential``.
 
         Exactly one of ``num_actions`` (discrete actions ``0..n-1``) and ``action_dim``
         (continuous action vectors) must be given. Creating an existing task with the same
@@ -120,28 +127,11 @@ class Client:
             The task with its resolved configuration.
 
         Raises:
+            TypeError: An unknown keyword, or a value of the wrong type.
             InvalidArgument: A value is out of range or the task id is malformed.
             AlreadyExists: The task exists with a different configuration.
         """
-        config = config_to_pb(
-            {
-                "num_actions": num_actions,
-                "action_dim": action_dim,
-                "pool_capacity": pool_capacity,
-                "k": k,
-                "start_step": start_step,
-                "min_pool_size": min_pool_size,
-                "alpha": alpha,
-                "beta": beta,
-                "gamma": gamma,
-                "max_trajectory_len": max_trajectory_len,
-                "gate_potential": gate_potential,
-            }
-        )
-        msg = self._call(
-            self._stub.CreateTask, pb.CreateTaskRequest(task_id=task_id, config=config)
-        )
-        return Task._from_pb(msg)
+        return self._run(ops.create_task(task_id, config))
 
     def get_task(self, task_id: str) -> Task:
         """Return a task with its configuration and live statistics.
@@ -149,12 +139,11 @@ class Client:
         Raises:
             TaskNotFound: No such task.
         """
-        return Task._from_pb(self._call(self._stub.GetTask, pb.GetTaskRequest(task_id=task_id)))
+        return self._run(ops.get_task(task_id))
 
     def list_tasks(self) -> list[Task]:
         """Return every task, ordered by task id."""
-        msg = self._call(self._stub.ListTasks, pb.ListTasksRequest())
-        return [Task._from_pb(t) for t in msg.tasks]
+        return self._run(ops.list_tasks())
 
     def delete_task(self, task_id: str) -> None:
         """Delete a task and its pool; its open sessions fail with ``TaskNotFound``.
@@ -162,7 +151,7 @@ class Client:
         Raises:
             TaskNotFound: No such task.
         """
-        self._call(self._stub.DeleteTask, pb.DeleteTaskRequest(task_id=task_id))
+        self._run(ops.delete_task(task_id))
 
     def reset_pool(self, task_id: str) -> Task:
         """Empty a task's memory pool (its ``pool_version`` increases); returns the task.
@@ -170,8 +159,7 @@ class Client:
         Raises:
             TaskNotFound: No such task.
         """
-        msg = self._call(self._stub.ResetPool, pb.ResetPoolRequest(task_id=task_id))
-        return Task._from_pb(msg)
+        return self._run(ops.reset_pool(task_id))
 
     def get_pool(self, task_id: str) -> Pool:
         """Return a task's memory pool, trajectories ordered by ``seq``.
@@ -182,13 +170,11 @@ class Client:
         Raises:
             TaskNotFound: No such task.
         """
-        msg = self._call(self._stub.GetPool, pb.GetPoolRequest(task_id=task_id))
-        action_dim = 0
-        if any(len(t.action_vectors) for t in msg.trajectories):
-            action_dim = self.get_task(task_id).config.action_dim
-        return _pool_from_pb(msg, action_dim)
+        return self._run(ops.get_pool(task_id))
 
-    def add_trajectory(self, task_id: str, actions: Any, score: float) -> AddTrajectoryResult:
+    def add_trajectory(
+        self, task_id: str, actions: npt.ArrayLike, score: float
+    ) -> AddTrajectoryResult:
         """Offer one trajectory (e.g. a demonstration) to a task's pool (SPEC §6 rules).
 
         Args:
@@ -205,11 +191,7 @@ class Client:
             InvalidArgument: Empty, out-of-range or wrongly-shaped actions, or a
                 non-finite score.
         """
-        request = pb.AddTrajectoryRequest(
-            task_id=task_id, trajectory=prepare_trajectory(actions, score)
-        )
-        msg = self._call(self._stub.AddTrajectory, request)
-        return AddTrajectoryResult(inserted=bool(msg.inserted), pool_version=int(msg.pool_version))
+        return self._run(ops.add_trajectory(task_id, actions, score))
 
     # -- sessions --------------------------------------------------------------------
 
@@ -241,17 +223,6 @@ class Client:
     def close(self) -> None:
         """Close the channel (open sessions are cancelled)."""
         self._channel.close()
-
-    def __enter__(self) -> Client:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"<tamrm.Client target={self.target!r}>"

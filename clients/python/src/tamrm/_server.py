@@ -15,13 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 __all__ = ["LocalServer", "ServerStartError", "find_binary", "health_check", "local_server"]
 
 _LISTENING = re.compile(r"listening on (\S+)")
 _ADDRESS = re.compile(r"^\s*(\S+):(\d+)\s*$")
-_HEALTH_METHOD = "/grpc.health.v1.Health/Check"
-_SERVING = 1
 
 
 class ServerStartError(RuntimeError):
@@ -63,56 +62,20 @@ def find_binary() -> Path:
     )
 
 
-def _varint(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte = value & 0x7F
-        value >>= 7
-        if value:
-            out.append(byte | 0x80)
-        else:
-            out.append(byte)
-            return bytes(out)
-
-
-def _health_status(payload: bytes) -> int:
-    """Decode ``HealthCheckResponse.status`` (field 1, varint) from its wire bytes."""
-    i = 0
-    status = 0
-    while i < len(payload):
-        key = payload[i]
-        i += 1
-        if key & 0x07 != 0:  # only varint fields are expected in this message
-            break
-        shift = 0
-        value = 0
-        while i < len(payload):
-            byte = payload[i]
-            i += 1
-            value |= (byte & 0x7F) << shift
-            shift += 7
-            if not byte & 0x80:
-                break
-        if key >> 3 == 1:
-            status = value
-    return status
-
-
 def health_check(target: str, service: str = "", timeout: float = 2.0) -> bool:
     """Ask ``grpc.health.v1.Health/Check`` whether ``service`` is SERVING at ``target``.
 
-    The health messages are encoded by hand (one string field out, one enum back) so that
-    no extra package is needed. Returns ``False`` on any error.
+    Returns ``False`` on any error.
     """
-    encoded = service.encode()
-    request = (b"\x0a" + _varint(len(encoded)) + encoded) if encoded else b""
     with grpc.insecure_channel(target) as channel:
-        check = channel.unary_unary(_HEALTH_METHOD)
+        check = health_pb2_grpc.HealthStub(channel).Check
         try:
-            payload = check(request, timeout=timeout, wait_for_ready=True)
+            answer = check(
+                health_pb2.HealthCheckRequest(service=service), timeout=timeout, wait_for_ready=True
+            )
         except grpc.RpcError:
             return False
-    return _health_status(bytes(payload)) == _SERVING
+    return bool(answer.status == health_pb2.HealthCheckResponse.SERVING)
 
 
 @dataclass

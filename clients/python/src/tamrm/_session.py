@@ -4,27 +4,36 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterator, Sequence
-from types import TracebackType
-from typing import Any
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any, Generic, TypeVar
 
 import grpc
 import numpy as np
 import numpy.typing as npt
 
-from tamrm._batch import prepare_batch
+from tamrm._batch import PreparedBatch, StepInput, prepare_batch
+from tamrm._closing import Closing
 from tamrm._errors import SessionClosed, TamrmError, from_rpc_error
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 from tamrm._types import StepResult, Task, TaskConfig
 
-__all__ = ["Session"]
+__all__ = ["Session", "SessionCore"]
 
 _CLOSE_TIMEOUT = 10.0
 
 
-class _SessionBase:
-    """State and checks shared by the sync and asyncio sessions."""
+_R = TypeVar("_R")
+
+
+class SessionCore(Generic[_R]):
+    """A ``Shape`` stream's client side without I/O, shared by the sync and asyncio sessions.
+
+    It builds the requests (``Open``, each ``StepBatch``), decodes the answers and keeps
+    the per-environment state. The two front-ends only move the messages:
+    :class:`Session` (``_R`` = :class:`StepResult`) blocks, :class:`tamrm.aio.AsyncSession`
+    (``_R`` = an awaitable of it) awaits; each implements :meth:`_exchange`.
+    """
 
     task_id: str
     num_envs: int
@@ -34,7 +43,21 @@ class _SessionBase:
     _closed: bool
     _error: BaseException | None
 
-    def _init_state(self, task_id: str, num_envs: int) -> None:
+    def __init__(
+        self,
+        stub: pb_grpc.ShapingStub,
+        task_id: str,
+        num_envs: int,
+        *,
+        metadata: Sequence[tuple[str, str]] | None = None,
+    ) -> None:
+        """Check the arguments and start the session (see :meth:`_start`).
+
+        Raises:
+            TypeError, ValueError: ``task_id`` or ``num_envs`` is not valid.
+            TaskNotFound: (sync session) The task does not exist.
+            InvalidArgument: (sync session) The server rejected ``num_envs`` or the id.
+        """
         if not isinstance(task_id, str):
             raise TypeError(f"task_id must be a str, got {type(task_id).__name__}")
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
@@ -47,6 +70,13 @@ class _SessionBase:
         self._pool_version = 0
         self._closed = True
         self._error = None
+        self._stub = stub
+        self._metadata = tuple(metadata) if metadata else None
+        self._start()
+
+    def _start(self) -> None:
+        """Front-end hook run at the end of ``__init__`` (the sync session opens here)."""
+        raise NotImplementedError
 
     @property
     def config(self) -> TaskConfig:
@@ -74,126 +104,24 @@ class _SessionBase:
         """Per environment, whether an episode has been started and not yet ended."""
         return np.greater(self._episode_steps, 0)
 
-    def _check_open(self) -> None:
-        if self._closed:
-            err = SessionClosed(f"the session on task {self.task_id!r} is closed")
-            raise err from self._error
-
-    def _opened(self, resp: pb.ShapeResponse) -> None:
-        if resp.WhichOneof("kind") != "opened":
-            raise TamrmError(f"expected 'opened' as the first Shape response, got {resp}")
-        self.task = Task._from_pb(resp.opened)
-        self._pool_version = self.task.stats.pool_version
-        self._episode_steps[:] = 0
-        self._closed = False
-        self._error = None
-
-    def _shaped(
-        self, resp: pb.ShapeResponse, env_ids: npt.NDArray[np.int64], done: npt.NDArray[np.bool_]
-    ) -> StepResult:
-        if resp.WhichOneof("kind") != "shaped":
-            raise TamrmError(f"expected a 'shaped' Shape response, got {resp.WhichOneof('kind')}")
-        result = StepResult._from_pb(resp.shaped, env_ids)
-        if len(result) != env_ids.shape[0] or result.steps.shape[0] != env_ids.shape[0]:
-            raise TamrmError(
-                f"the server answered {len(result)} entries for a batch of {env_ids.shape[0]}"
-            )
-        # Rows of one env come in order, so the last assignment wins as it should.
-        self._episode_steps[env_ids] = result.steps + 1
-        self._episode_steps[env_ids[done]] = 0
-        self._pool_version = result.pool_version
-        return result
-
-
-class Session(_SessionBase):
-    """One open ``Shape`` stream shaping ``num_envs`` environments of one task.
-
-    Create it with :meth:`tamrm.Client.session` and use it as a context manager; each
-    :meth:`step` is one round trip (one ``StepBatch`` out, one ``ShapedBatch`` back) on
-    the stream, which stays open until :meth:`close`. A session is not thread-safe: use
-    one per thread (several sessions may shape on the same task at once).
-
-    Attributes:
-        task_id: The task shaped.
-        num_envs: Number of environments (rows of a full step).
-        task: The task as the server returned it when the stream opened (its ``config``
-            tells whether actions are discrete).
-    """
-
-    def __init__(
-        self,
-        stub: pb_grpc.ShapingStub,
-        task_id: str,
-        num_envs: int,
-        *,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
-        """Open the stream (blocking until the server answers ``Open``).
-
-        Raises:
-            TaskNotFound: The task does not exist.
-            InvalidArgument: ``num_envs`` or the task id was rejected.
-        """
-        self._init_state(task_id, num_envs)
-        self._stub = stub
-        self._metadata = tuple(metadata) if metadata else None
-        self._requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
-        self._responses: Any = None
-        self._open()
-
-    # -- stream plumbing -------------------------------------------------------------
-
-    def _open(self) -> None:
-        requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
-
-        def request_iter() -> Iterator[pb.ShapeRequest]:
-            while True:
-                item = requests.get()
-                if item is None:
-                    return
-                yield item
-
-        requests.put(pb.ShapeRequest(open=pb.Open(task_id=self.task_id, num_envs=self.num_envs)))
-        self._requests = requests
-        self._responses = self._stub.Shape(request_iter(), metadata=self._metadata)
-        first = self._receive()
-        self._opened(first)
-
-    def _receive(self) -> pb.ShapeResponse:
-        try:
-            resp: pb.ShapeResponse = next(self._responses)
-            return resp
-        except grpc.RpcError as exc:
-            err: TamrmError = from_rpc_error(exc)
-        except StopIteration:
-            err = TamrmError("the server ended the Shape stream unexpectedly")
-        self._abort(err)
-        raise err from None
-
-    def _abort(self, err: BaseException) -> None:
-        self._closed = True
-        self._error = err
-        self._requests.put(None)
-        if self._responses is not None:
-            self._responses.cancel()
-
-    # -- public API ------------------------------------------------------------------
-
     def step(
         self,
-        actions: Any,
-        rewards: Any,
-        terminated: Any = None,
-        truncated: Any = None,
+        actions: npt.ArrayLike,
+        rewards: npt.ArrayLike,
+        terminated: npt.ArrayLike | None = None,
+        truncated: npt.ArrayLike | None = None,
         *,
-        values: Any = None,
-        next_values: Any = None,
-        q_values: Any = None,
-        next_q_values: Any = None,
-        episode_scores: Any = None,
-        env_ids: Any = None,
-    ) -> StepResult:
+        values: npt.ArrayLike | None = None,
+        next_values: npt.ArrayLike | None = None,
+        q_values: npt.ArrayLike | None = None,
+        next_q_values: npt.ArrayLike | None = None,
+        episode_scores: npt.ArrayLike | Mapping[int, float] | None = None,
+        env_ids: npt.ArrayLike | None = None,
+    ) -> _R:
         """Shape one vector step: one row per environment (or per entry of ``env_ids``).
+
+        On an :class:`tamrm.aio.AsyncSession` this returns an awaitable (``await
+        session.step(...)``); the arguments are checked when it is awaited.
 
         Args:
             actions: The actions taken: integers of shape ``(B,)`` for a discrete task,
@@ -231,30 +159,159 @@ class Session(_SessionBase):
             After a server error the stream is closed; open a new session (or call
             :meth:`restart`) to continue.
         """
-        self._check_open()
-        prepared = prepare_batch(
-            self.task.config,
-            self.num_envs,
-            actions,
-            rewards,
-            terminated,
-            truncated,
-            values=values,
-            next_values=next_values,
-            q_values=q_values,
-            next_q_values=next_q_values,
-            episode_scores=episode_scores,
-            env_ids=env_ids,
+        return self._exchange(
+            StepInput(
+                actions,
+                rewards,
+                terminated,
+                truncated,
+                values,
+                next_values,
+                q_values,
+                next_q_values,
+                episode_scores,
+                env_ids,
+            )
         )
+
+    def _exchange(self, step: StepInput) -> _R:
+        """Send the step's batch (from :meth:`_prepare`) and decode the answer (:meth:`_shaped`)."""
+        raise NotImplementedError
+
+    # -- the protocol, without I/O ---------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            err = SessionClosed(f"the session on task {self.task_id!r} is closed")
+            raise err from self._error
+
+    def _open_request(self) -> pb.ShapeRequest:
+        return pb.ShapeRequest(open=pb.Open(task_id=self.task_id, num_envs=self.num_envs))
+
+    def _opened(self, resp: pb.ShapeResponse) -> None:
+        if resp.WhichOneof("kind") != "opened":
+            raise TamrmError(f"expected 'opened' as the first Shape response, got {resp}")
+        self.task = Task._from_pb(resp.opened)
+        self._pool_version = self.task.stats.pool_version
+        self._episode_steps[:] = 0
+        self._closed = False
+        self._error = None
+
+    def _prepare(self, step: StepInput) -> PreparedBatch | StepResult:
+        """The batch to send for ``step``, or the (empty) result when there is nothing to send.
+
+        Raises:
+            SessionClosed: The session is closed.
+            TypeError, ValueError: See :meth:`step`.
+        """
+        self._check_open()
+        prepared = prepare_batch(self.task.config, self.num_envs, step)
         if prepared.size == 0:
             return StepResult._empty(self._pool_version)
+        return prepared
+
+    def _shaped(self, resp: pb.ShapeResponse, prepared: PreparedBatch) -> StepResult:
+        """Decode the answer to ``prepared`` and update the per-environment state.
+
+        Raises:
+            TamrmError: The answer does not match the batch (the caller ends the stream).
+        """
+        env_ids, done = prepared.env_ids, prepared.done
+        if resp.WhichOneof("kind") != "shaped":
+            raise TamrmError(f"expected a 'shaped' Shape response, got {resp.WhichOneof('kind')}")
+        result = StepResult._from_pb(resp.shaped, env_ids)
+        if len(result) != env_ids.shape[0] or result.steps.shape[0] != env_ids.shape[0]:
+            raise TamrmError(
+                f"the server answered {len(result)} entries for a batch of {env_ids.shape[0]}"
+            )
+        # Rows of one env come in order, so the last assignment wins as it should.
+        self._episode_steps[env_ids] = result.steps + 1
+        self._episode_steps[env_ids[done]] = 0
+        self._pool_version = result.pool_version
+        return result
+
+    def _failed(self, err: BaseException) -> None:
+        """Record that the stream ended with ``err``."""
+        self._closed = True
+        self._error = err
+
+    def _closing(self) -> bool:
+        """Mark the session closed; return whether it was open (so there is a stream to end)."""
+        if self._closed:
+            return False
+        self._closed = True
+        self._episode_steps[:] = 0
+        return True
+
+
+class Session(SessionCore[StepResult], Closing):
+    """One open ``Shape`` stream shaping ``num_envs`` environments of one task.
+
+    Create it with :meth:`tamrm.Client.session` and use it as a context manager; each
+    :meth:`step` is one round trip (one ``StepBatch`` out, one ``ShapedBatch`` back) on
+    the stream, which stays open until :meth:`close`. A session is not thread-safe: use
+    one per thread (several sessions may shape on the same task at once).
+
+    Attributes:
+        task_id: The task shaped.
+        num_envs: Number of environments (rows of a full step).
+        task: The task as the server returned it when the stream opened (its ``config``
+            tells whether actions are discrete).
+    """
+
+    def _start(self) -> None:
+        # Open the stream now, blocking until the server answers ``Open``.
+        self._requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
+        self._responses: Any = None
+        self._open()
+
+    # -- stream plumbing -------------------------------------------------------------
+
+    def _open(self) -> None:
+        requests: queue.SimpleQueue[pb.ShapeRequest | None] = queue.SimpleQueue()
+
+        def request_iter() -> Iterator[pb.ShapeRequest]:
+            while True:
+                item = requests.get()
+                if item is None:
+                    return
+                yield item
+
+        requests.put(self._open_request())
+        self._requests = requests
+        self._responses = self._stub.Shape(request_iter(), metadata=self._metadata)
+        self._opened(self._receive())
+
+    def _receive(self) -> pb.ShapeResponse:
+        try:
+            resp: pb.ShapeResponse = next(self._responses)
+            return resp
+        except grpc.RpcError as exc:
+            err: TamrmError = from_rpc_error(exc)
+        except StopIteration:
+            err = TamrmError("the server ended the Shape stream unexpectedly")
+        self._abort(err)
+        raise err from None
+
+    def _abort(self, err: BaseException) -> None:
+        self._failed(err)
+        self._requests.put(None)
+        if self._responses is not None:
+            self._responses.cancel()
+
+    def _exchange(self, step: StepInput) -> StepResult:
+        prepared = self._prepare(step)
+        if isinstance(prepared, StepResult):
+            return prepared
         self._requests.put(prepared.request)
         resp = self._receive()
         try:
-            return self._shaped(resp, prepared.env_ids, prepared.done)
+            return self._shaped(resp, prepared)
         except TamrmError as err:
             self._abort(err)
             raise
+
+    # -- public API ------------------------------------------------------------------
 
     def restart(self) -> None:
         """Close the stream and open a new one on the same task.
@@ -272,9 +329,8 @@ class Session(_SessionBase):
 
         Idempotent. Episodes still in progress are discarded by the server.
         """
-        if self._closed:
+        if not self._closing():
             return
-        self._closed = True
         self._requests.put(None)
         responses = self._responses
         if responses is None:
@@ -283,10 +339,6 @@ class Session(_SessionBase):
         responses.add_done_callback(lambda _call: done.set())
         if not done.wait(_CLOSE_TIMEOUT):
             responses.cancel()
-        self._episode_steps[:] = 0
-
-    def __enter__(self) -> Session:
-        return self
 
     def __del__(self) -> None:
         # An unclosed session: end the request iterator so that the stream half-closes
@@ -294,14 +346,6 @@ class Session(_SessionBase):
         requests = getattr(self, "_requests", None)
         if requests is not None:
             requests.put(None)
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict, TypeVar
 
 import numpy as np
 import numpy.typing as npt
+from google.protobuf.descriptor import FieldDescriptor
+from google.protobuf.message import Message
 
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 
@@ -18,28 +21,56 @@ __all__ = [
     "StepResult",
     "Task",
     "TaskConfig",
+    "TaskOptions",
     "TaskStats",
     "Trajectory",
 ]
 
+_D = TypeVar("_D")
+
+
+class TaskOptions(TypedDict, total=False):
+    """The keyword arguments of ``create_task``: the proto's ``TaskConfig`` fields.
+
+    Every key is optional; ``None`` or a missing key means "the server's default"
+    (SPEC §1.1). See :class:`TaskConfig` for their meaning.
+    """
+
+    num_actions: int | None
+    action_dim: int | None
+    pool_capacity: int | None
+    k: int | None
+    start_step: int | None
+    min_pool_size: int | None
+    alpha: float | None
+    beta: float | None
+    gamma: float | None
+    max_trajectory_len: int | None
+    gate_potential: bool | None
+
+
 #: The ``TaskConfig`` fields, in proto order; ``Client.create_task`` takes them as keywords.
-CONFIG_FIELDS: tuple[str, ...] = (
-    "num_actions",
-    "action_dim",
-    "pool_capacity",
-    "k",
-    "start_step",
-    "min_pool_size",
-    "alpha",
-    "beta",
-    "gamma",
-    "max_trajectory_len",
-    "gate_potential",
-)
-_FLOAT_FIELDS = frozenset({"alpha", "beta", "gamma"})
-_BOOL_FIELDS = frozenset({"gate_potential"})
-_INT_FIELDS = frozenset(CONFIG_FIELDS) - _FLOAT_FIELDS - _BOOL_FIELDS
+CONFIG_FIELDS: tuple[str, ...] = tuple(TaskOptions.__annotations__)
 _UINT32_MAX = 2**32 - 1
+
+# The Python type of each proto scalar type used by TaskConfig and TaskStats.
+_PY_TYPES: dict[int, type] = {
+    FieldDescriptor.TYPE_UINT32: int,
+    FieldDescriptor.TYPE_UINT64: int,
+    FieldDescriptor.TYPE_DOUBLE: float,
+    FieldDescriptor.TYPE_BOOL: bool,
+}
+
+
+def _scalars(cls: type[_D], msg: Message) -> _D:
+    """Build the dataclass ``cls`` from the same-named scalar fields of ``msg``."""
+    by_name = msg.DESCRIPTOR.fields_by_name
+    return cls(
+        **{
+            f.name: _PY_TYPES[by_name[f.name].type](getattr(msg, f.name))
+            for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+        }
+    )
 
 
 @dataclass(frozen=True)
@@ -80,19 +111,7 @@ class TaskConfig:
 
     @classmethod
     def _from_pb(cls, msg: pb.TaskConfig) -> TaskConfig:
-        return cls(
-            num_actions=int(msg.num_actions),
-            action_dim=int(msg.action_dim),
-            pool_capacity=int(msg.pool_capacity),
-            k=int(msg.k),
-            start_step=int(msg.start_step),
-            min_pool_size=int(msg.min_pool_size),
-            alpha=float(msg.alpha),
-            beta=float(msg.beta),
-            gamma=float(msg.gamma),
-            max_trajectory_len=int(msg.max_trajectory_len),
-            gate_potential=bool(msg.gate_potential),
-        )
+        return _scalars(cls, msg)
 
 
 @dataclass(frozen=True)
@@ -121,16 +140,7 @@ class TaskStats:
 
     @classmethod
     def _from_pb(cls, msg: pb.TaskStats) -> TaskStats:
-        return cls(
-            pool_size=int(msg.pool_size),
-            pool_version=int(msg.pool_version),
-            min_length=int(msg.min_length),
-            best_score=float(msg.best_score),
-            worst_score=float(msg.worst_score),
-            episodes_completed=int(msg.episodes_completed),
-            steps_shaped=int(msg.steps_shaped),
-            open_streams=int(msg.open_streams),
-        )
+        return _scalars(cls, msg)
 
 
 @dataclass(frozen=True)
@@ -161,7 +171,7 @@ class Trajectory:
         seq: The server-assigned insertion number (strictly increasing per task).
     """
 
-    actions: npt.NDArray[Any]
+    actions: npt.NDArray[np.int64] | npt.NDArray[np.float32]
     score: float
     seq: int
 
@@ -172,10 +182,10 @@ class Trajectory:
     def _from_pb(cls, msg: pb.Trajectory, action_dim: int) -> Trajectory:
         if len(msg.action_vectors) > 0:
             dim = action_dim if action_dim > 0 else len(msg.action_vectors)
-            acts: npt.NDArray[Any] = np.array(msg.action_vectors, dtype=np.float32).reshape(-1, dim)
-        else:
-            acts = np.array(msg.actions, dtype=np.int64)
-        return cls(actions=acts, score=float(msg.score), seq=int(msg.seq))
+            vectors = np.array(msg.action_vectors, dtype=np.float32).reshape(-1, dim)
+            return cls(actions=vectors, score=float(msg.score), seq=int(msg.seq))
+        actions = np.array(msg.actions, dtype=np.int64)
+        return cls(actions=actions, score=float(msg.score), seq=int(msg.seq))
 
 
 @dataclass(frozen=True)
@@ -286,17 +296,18 @@ def config_to_pb(values: Mapping[str, Any]) -> pb.TaskConfig:
         value = values.get(name)
         if value is None:
             continue
-        if name in _INT_FIELDS:
+        kind = _PY_TYPES[msg.DESCRIPTOR.fields_by_name[name].type]
+        if kind is bool:
+            if not isinstance(value, (bool, np.bool_)):
+                raise TypeError(f"{name} must be a bool, got {type(value).__name__}")
+            setattr(msg, name, bool(value))
+        elif kind is int:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
                 raise TypeError(f"{name} must be an int, got {type(value).__name__}")
             ivalue = int(value)
             if not 0 <= ivalue <= _UINT32_MAX:
                 raise ValueError(f"{name} must be in 0..{_UINT32_MAX}, got {ivalue}")
             setattr(msg, name, ivalue)
-        elif name in _BOOL_FIELDS:
-            if not isinstance(value, (bool, np.bool_)):
-                raise TypeError(f"{name} must be a bool, got {type(value).__name__}")
-            setattr(msg, name, bool(value))
         else:
             if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
                 raise TypeError(f"{name} must be a float, got {type(value).__name__}")

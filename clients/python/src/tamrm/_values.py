@@ -3,27 +3,29 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ValueFn", "concat_obs", "select_obs", "set_obs_row", "value_kwargs"]
+__all__ = ["ObsBatch", "ValueFn", "concat_obs", "select_obs", "set_obs_row", "value_kwargs"]
 
-#: ``value_fn(observations) -> values``: given a batch of observations (an array with a
-#: leading batch axis, or a dict of such arrays), returns V(s) with shape ``(B,)`` (or
-#: ``(B, 1)``), or Q(s, ·) with shape ``(B, num_actions)``.
-ValueFn = Callable[[Any], Any]
+#: A batch of observations: an array with a leading batch axis, or a dict of batches.
+ObsBatch: TypeAlias = "npt.NDArray[Any] | Mapping[str, ObsBatch]"
+
+#: ``value_fn(observations) -> values``: given a batch of observations, returns V(s)
+#: with shape ``(B,)`` (or ``(B, 1)``), or Q(s, ·) with shape ``(B, num_actions)``.
+ValueFn = Callable[[ObsBatch], npt.ArrayLike]
 
 
-def concat_obs(first: Any, second: Any) -> Any:
+def concat_obs(first: ObsBatch, second: ObsBatch) -> ObsBatch:
     """Concatenate two observation batches along the batch axis (arrays or dicts of arrays)."""
     if isinstance(first, Mapping):
         return {key: concat_obs(first[key], second[key]) for key in first}
     return np.concatenate([np.asarray(first), np.asarray(second)], axis=0)
 
 
-def select_obs(obs: Any, rows: npt.NDArray[np.int64] | None) -> Any:
+def select_obs(obs: ObsBatch, rows: npt.NDArray[np.intp] | None) -> ObsBatch:
     """Select rows of an observation batch (``rows=None``: all rows, no copy)."""
     if rows is None:
         return obs
@@ -32,14 +34,14 @@ def select_obs(obs: Any, rows: npt.NDArray[np.int64] | None) -> Any:
     return np.asarray(obs)[rows]
 
 
-def copy_obs(obs: Any) -> Any:
+def copy_obs(obs: ObsBatch) -> ObsBatch:
     """Copy an observation batch (arrays or dicts of arrays)."""
     if isinstance(obs, Mapping):
         return {key: copy_obs(value) for key, value in obs.items()}
     return np.array(obs, copy=True)
 
 
-def set_obs_row(obs: Any, row: int, value: Any) -> None:
+def set_obs_row(obs: ObsBatch, row: int, value: Any) -> None:
     """Overwrite row ``row`` of an observation batch in place."""
     if isinstance(obs, Mapping):
         for key in obs:
@@ -49,7 +51,7 @@ def set_obs_row(obs: Any, row: int, value: Any) -> None:
 
 
 def value_kwargs(
-    value_fn: ValueFn | None, obs: Any, next_obs: Any, size: int
+    value_fn: ValueFn | None, obs: ObsBatch, next_obs: ObsBatch, size: int
 ) -> dict[str, npt.NDArray[np.float64]]:
     """Evaluate ``value_fn`` once on ``obs`` and ``next_obs`` and return step keywords.
 

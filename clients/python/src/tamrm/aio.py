@@ -9,31 +9,39 @@ but every call is a coroutine::
         await client.create_task("cartpole", num_actions=2)
         async with client.session("cartpole", num_envs=8) as session:
             shaped = await session.step(actions, rewards, terminated, truncated)
+
+Requests and answers are built and decoded by the same code as the synchronous client's
+(``tamrm._ops`` for the unary calls, :class:`tamrm._session.SessionCore` for the stream);
+this module only awaits them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable, Generator, Sequence
-from types import TracebackType
-from typing import Any, TypeVar
+from collections.abc import Awaitable, Generator
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import grpc
 import grpc.aio
+import numpy.typing as npt
 
-from tamrm._batch import prepare_batch, prepare_trajectory
-from tamrm._client import DEFAULT_TIMEOUT, _pool_from_pb, make_channel_options
+from tamrm import _ops as ops
+from tamrm._batch import StepInput
+from tamrm._client import ClientCore
+from tamrm._closing import AsyncClosing
 from tamrm._errors import TamrmError, from_rpc_error, from_status
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
-from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
-from tamrm._session import _SessionBase
-from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, config_to_pb
+from tamrm._session import SessionCore
+from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskOptions
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["AsyncSession", "Client"]
 
 _T = TypeVar("_T")
 
 
-class AsyncSession(_SessionBase):
+class AsyncSession(SessionCore[Awaitable[StepResult]], AsyncClosing):
     """One ``Shape`` stream, asyncio flavour; see :class:`tamrm.Session`.
 
     Returned (not yet open) by :meth:`Client.session`: open it with ``async with`` (or
@@ -42,18 +50,8 @@ class AsyncSession(_SessionBase):
     before sending the next.
     """
 
-    def __init__(
-        self,
-        stub: pb_grpc.ShapingStub,
-        task_id: str,
-        num_envs: int,
-        *,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
-        """Prepare the session; the stream opens on ``open()`` / ``async with``."""
-        self._init_state(task_id, num_envs)
-        self._stub = stub
-        self._metadata = tuple(metadata) if metadata else None
+    def _start(self) -> None:
+        # The stream opens on ``open()`` / ``async with``.
         self._call: Any = None
 
     async def open(self) -> AsyncSession:
@@ -66,9 +64,7 @@ class AsyncSession(_SessionBase):
         if not self._closed:
             return self
         self._call = self._stub.Shape(metadata=self._metadata)
-        await self._write(
-            pb.ShapeRequest(open=pb.Open(task_id=self.task_id, num_envs=self.num_envs))
-        )
+        await self._write(self._open_request())
         self._opened(await self._read())
         return self
 
@@ -113,47 +109,18 @@ class AsyncSession(_SessionBase):
         return msg
 
     def _abort(self, err: BaseException) -> None:
-        self._closed = True
-        self._error = err
+        self._failed(err)
         if self._call is not None:
             self._call.cancel()
 
-    async def step(
-        self,
-        actions: Any,
-        rewards: Any,
-        terminated: Any = None,
-        truncated: Any = None,
-        *,
-        values: Any = None,
-        next_values: Any = None,
-        q_values: Any = None,
-        next_q_values: Any = None,
-        episode_scores: Any = None,
-        env_ids: Any = None,
-    ) -> StepResult:
-        """Shape one vector step; see :meth:`tamrm.Session.step` for the arguments."""
-        self._check_open()
-        prepared = prepare_batch(
-            self.task.config,
-            self.num_envs,
-            actions,
-            rewards,
-            terminated,
-            truncated,
-            values=values,
-            next_values=next_values,
-            q_values=q_values,
-            next_q_values=next_q_values,
-            episode_scores=episode_scores,
-            env_ids=env_ids,
-        )
-        if prepared.size == 0:
-            return StepResult._empty(self._pool_version)
+    async def _exchange(self, step: StepInput) -> StepResult:
+        prepared = self._prepare(step)
+        if isinstance(prepared, StepResult):
+            return prepared
         await self._write(prepared.request)
         resp = await self._read()
         try:
-            return self._shaped(resp, prepared.env_ids, prepared.done)
+            return self._shaped(resp, prepared)
         except TamrmError as err:
             self._abort(err)
             raise
@@ -165,9 +132,8 @@ class AsyncSession(_SessionBase):
 
     async def close(self) -> None:
         """Half-close the stream and wait for the server to end it. Idempotent."""
-        if self._closed:
+        if not self._closing():
             return
-        self._closed = True
         call = self._call
         try:
             await call.done_writing()
@@ -175,7 +141,6 @@ class AsyncSession(_SessionBase):
                 pass
         except grpc.RpcError:
             pass
-        self._episode_steps[:] = 0
 
     def __await__(self) -> Generator[Any, None, AsyncSession]:
         return self.open().__await__()
@@ -183,20 +148,12 @@ class AsyncSession(_SessionBase):
     async def __aenter__(self) -> AsyncSession:
         return await self.open()
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"<tamrm.aio.AsyncSession task_id={self.task_id!r} num_envs={self.num_envs} {state}>"
 
 
-class Client:
+class Client(ClientCore, AsyncClosing):
     """Asyncio client of a tamrm server; see :class:`tamrm.Client` for every method.
 
     Create it inside a running event loop.
@@ -209,102 +166,55 @@ class Client:
         metadata: Metadata sent with every call.
     """
 
-    def __init__(
+    def _make_channel(
         self,
         target: str,
-        *,
-        timeout: float | None = DEFAULT_TIMEOUT,
-        credentials: grpc.ChannelCredentials | None = None,
-        options: Sequence[tuple[str, Any]] | None = None,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
-        self.target = target
-        self.timeout = timeout
-        opts = make_channel_options(options)
+        credentials: grpc.ChannelCredentials | None,
+        options: list[tuple[str, Any]],
+    ) -> grpc.aio.Channel:
         if credentials is None:
-            self._channel = grpc.aio.insecure_channel(target, options=opts)
-        else:
-            self._channel = grpc.aio.secure_channel(target, credentials, options=opts)
-        self._stub = pb_grpc.ShapingStub(self._channel)
-        self._metadata = tuple(metadata) if metadata else None
+            return grpc.aio.insecure_channel(target, options=options)
+        return grpc.aio.secure_channel(target, credentials, options=options)
 
-    async def _call(self, method: Callable[..., Awaitable[_T]], request: Any) -> _T:
+    async def _call(self, rpc: ops.Rpc) -> Any:
+        method = getattr(self._stub, rpc.method)
         try:
-            return await method(request, timeout=self.timeout, metadata=self._metadata)
+            return await method(rpc.request, timeout=self.timeout, metadata=self._metadata)
         except grpc.RpcError as exc:
             raise from_rpc_error(exc) from None
 
-    async def create_task(
-        self,
-        task_id: str,
-        *,
-        num_actions: int | None = None,
-        action_dim: int | None = None,
-        pool_capacity: int | None = None,
-        k: int | None = None,
-        start_step: int | None = None,
-        min_pool_size: int | None = None,
-        alpha: float | None = None,
-        beta: float | None = None,
-        gamma: float | None = None,
-        max_trajectory_len: int | None = None,
-        gate_potential: bool | None = None,
-    ) -> Task:
+    async def _run(self, op: ops.Op[_T]) -> _T:
+        return await ops.run_async(op, self._call)
+
+    async def create_task(self, task_id: str, **config: Unpack[TaskOptions]) -> Task:
         """Create a task; see :meth:`tamrm.Client.create_task`."""
-        config = config_to_pb(
-            {
-                "num_actions": num_actions,
-                "action_dim": action_dim,
-                "pool_capacity": pool_capacity,
-                "k": k,
-                "start_step": start_step,
-                "min_pool_size": min_pool_size,
-                "alpha": alpha,
-                "beta": beta,
-                "gamma": gamma,
-                "max_trajectory_len": max_trajectory_len,
-                "gate_potential": gate_potential,
-            }
-        )
-        msg = await self._call(
-            self._stub.CreateTask, pb.CreateTaskRequest(task_id=task_id, config=config)
-        )
-        return Task._from_pb(msg)
+        return await self._run(ops.create_task(task_id, config))
 
     async def get_task(self, task_id: str) -> Task:
         """Return a task; see :meth:`tamrm.Client.get_task`."""
-        msg = await self._call(self._stub.GetTask, pb.GetTaskRequest(task_id=task_id))
-        return Task._from_pb(msg)
+        return await self._run(ops.get_task(task_id))
 
     async def list_tasks(self) -> list[Task]:
         """Return every task, ordered by task id."""
-        msg = await self._call(self._stub.ListTasks, pb.ListTasksRequest())
-        return [Task._from_pb(t) for t in msg.tasks]
+        return await self._run(ops.list_tasks())
 
     async def delete_task(self, task_id: str) -> None:
         """Delete a task and its pool; see :meth:`tamrm.Client.delete_task`."""
-        await self._call(self._stub.DeleteTask, pb.DeleteTaskRequest(task_id=task_id))
+        await self._run(ops.delete_task(task_id))
 
     async def reset_pool(self, task_id: str) -> Task:
         """Empty a task's memory pool; see :meth:`tamrm.Client.reset_pool`."""
-        msg = await self._call(self._stub.ResetPool, pb.ResetPoolRequest(task_id=task_id))
-        return Task._from_pb(msg)
+        return await self._run(ops.reset_pool(task_id))
 
     async def get_pool(self, task_id: str) -> Pool:
         """Return a task's memory pool; see :meth:`tamrm.Client.get_pool`."""
-        msg = await self._call(self._stub.GetPool, pb.GetPoolRequest(task_id=task_id))
-        action_dim = 0
-        if any(len(t.action_vectors) for t in msg.trajectories):
-            action_dim = (await self.get_task(task_id)).config.action_dim
-        return _pool_from_pb(msg, action_dim)
+        return await self._run(ops.get_pool(task_id))
 
-    async def add_trajectory(self, task_id: str, actions: Any, score: float) -> AddTrajectoryResult:
+    async def add_trajectory(
+        self, task_id: str, actions: npt.ArrayLike, score: float
+    ) -> AddTrajectoryResult:
         """Offer a trajectory to a task's pool; see :meth:`tamrm.Client.add_trajectory`."""
-        request = pb.AddTrajectoryRequest(
-            task_id=task_id, trajectory=prepare_trajectory(actions, score)
-        )
-        msg = await self._call(self._stub.AddTrajectory, request)
-        return AddTrajectoryResult(inserted=bool(msg.inserted), pool_version=int(msg.pool_version))
+        return await self._run(ops.add_trajectory(task_id, actions, score))
 
     def session(self, task_id: str, num_envs: int = 1) -> AsyncSession:
         """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``."""
@@ -313,17 +223,6 @@ class Client:
     async def close(self) -> None:
         """Close the channel (open sessions are cancelled)."""
         await self._channel.close()
-
-    async def __aenter__(self) -> Client:
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     def __repr__(self) -> str:
         return f"<tamrm.aio.Client target={self.target!r}>"

@@ -32,7 +32,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 
 from tamrm._session import Session
 from tamrm._types import StepResult, TaskConfig
-from tamrm._values import ValueFn, copy_obs, select_obs, set_obs_row, value_kwargs
+from tamrm._values import ObsBatch, ValueFn, copy_obs, select_obs, set_obs_row, value_kwargs
 
 __all__ = ["INFO_KEYS", "ShapedReward", "ValueFn", "VectorShapedReward"]
 
@@ -71,7 +71,20 @@ def check_action_space(space: spaces.Space[Any], config: TaskConfig) -> None:
             )
 
 
-def _single_action(action: Any, config: TaskConfig) -> npt.NDArray[Any]:
+def check_session(
+    session: Session, num_envs: int, action_space: spaces.Space[Any], what: str
+) -> None:
+    """Check that a session fits a vector environment (``what`` names it in the message).
+
+    Raises:
+        ValueError: The numbers of environments differ, or see :func:`check_action_space`.
+    """
+    if session.num_envs != num_envs:
+        raise ValueError(f"session has num_envs={session.num_envs} but {what} has {num_envs}")
+    check_action_space(action_space, session.config)
+
+
+def _single_action(action: npt.ArrayLike, config: TaskConfig) -> npt.NDArray[np.generic]:
     arr = np.asarray(action)
     if config.discrete:
         return arr.reshape(1)
@@ -215,16 +228,12 @@ class VectorShapedReward(VectorWrapper):
         score_key: str | None = None,
     ) -> None:
         super().__init__(env)
-        if session.num_envs != env.num_envs:
-            raise ValueError(
-                f"session has num_envs={session.num_envs} but the vector env has {env.num_envs}"
-            )
-        check_action_space(env.single_action_space, session.config)
+        check_session(session, env.num_envs, env.single_action_space, "the vector env")
         self.session = session
         self.value_fn = value_fn
         self.autoreset_mode = _autoreset_mode(env)
         self.score_key = score_key
-        self._obs: Any = None
+        self._obs: ObsBatch | None = None
         self._autoreset = np.zeros(env.num_envs, dtype=np.bool_)
 
     def reset(
@@ -257,7 +266,7 @@ class VectorShapedReward(VectorWrapper):
         return obs, info
 
     def step(
-        self, actions: Any
+        self, actions: npt.ArrayLike
     ) -> tuple[
         Any, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
     ]:
@@ -344,7 +353,7 @@ class VectorShapedReward(VectorWrapper):
         sent: npt.NDArray[np.bool_],
     ) -> None:
         n = self.num_envs
-        columns: dict[str, npt.NDArray[Any]] = {
+        columns: dict[str, npt.NDArray[np.generic]] = {
             "original_reward": rewards.copy(),
             "knn_reward": np.zeros(n, dtype=np.float64),
             "potential": np.zeros(n, dtype=np.float64),

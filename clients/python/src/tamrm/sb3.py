@@ -30,10 +30,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
 
 from tamrm._session import Session
-from tamrm._values import ValueFn, copy_obs, set_obs_row, value_kwargs
-from tamrm.gym import check_action_space
+from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
+from tamrm.gym import check_session
 
 __all__ = ["ShapedVecEnv", "model_value_fn"]
 
@@ -57,7 +58,7 @@ def model_value_fn(model: Any) -> ValueFn:
     if hasattr(policy, "q_net"):
         q_net = policy.q_net
 
-        def q_values(obs: Any) -> npt.NDArray[np.float64]:
+        def q_values(obs: ObsBatch) -> npt.NDArray[np.float64]:
             tensor, _ = policy.obs_to_tensor(obs)
             with torch.no_grad():
                 out = q_net(tensor)
@@ -66,7 +67,7 @@ def model_value_fn(model: Any) -> ValueFn:
         return q_values
     if hasattr(policy, "predict_values"):
 
-        def state_values(obs: Any) -> npt.NDArray[np.float64]:
+        def state_values(obs: ObsBatch) -> npt.NDArray[np.float64]:
             tensor, _ = policy.obs_to_tensor(obs)
             with torch.no_grad():
                 out = policy.predict_values(tensor)
@@ -77,6 +78,11 @@ def model_value_fn(model: Any) -> ValueFn:
         f"{type(model).__name__}: its policy has neither q_net (DQN) nor predict_values "
         "(A2C/PPO); pass your own value_fn"
     )
+
+
+def _obs_batch(obs: VecEnvObs) -> ObsBatch:
+    """The observations for the value helpers: arrays or dicts of arrays (a tuple: one array)."""
+    return np.asarray(obs) if isinstance(obs, tuple) else obs
 
 
 class ShapedVecEnv(VecEnvWrapper):
@@ -106,16 +112,12 @@ class ShapedVecEnv(VecEnvWrapper):
         score_key: str | None = None,
     ) -> None:
         super().__init__(venv)
-        if session.num_envs != venv.num_envs:
-            raise ValueError(
-                f"session has num_envs={session.num_envs} but the VecEnv has {venv.num_envs}"
-            )
-        check_action_space(venv.action_space, session.config)
+        check_session(session, venv.num_envs, venv.action_space, "the VecEnv")
         self.session = session
         self.value_fn = value_fn
         self.score_key = score_key
-        self._obs: Any = None
-        self._actions: Any = None
+        self._obs: ObsBatch | None = None
+        self._actions: npt.NDArray[Any] | None = None
 
     def bind_model(self, model: Any) -> ShapedVecEnv:
         """Use ``model``'s own value estimates for the potential term F.
@@ -134,12 +136,12 @@ class ShapedVecEnv(VecEnvWrapper):
             )
         return self
 
-    def reset(self) -> Any:
+    def reset(self) -> VecEnvObs:
         """Reset every sub-environment; restart the stream if episodes were in progress."""
         obs = self.venv.reset()
         if self.session.episodes_in_progress.any():
             self.session.restart()
-        self._obs = obs
+        self._obs = _obs_batch(obs)
         return obs
 
     def step_async(self, actions: npt.NDArray[Any]) -> None:
@@ -149,9 +151,10 @@ class ShapedVecEnv(VecEnvWrapper):
 
     def step_wait(
         self,
-    ) -> tuple[Any, npt.NDArray[np.float32], npt.NDArray[np.bool_], list[dict[str, Any]]]:
+    ) -> tuple[VecEnvObs, npt.NDArray[np.float32], npt.NDArray[np.bool_], list[dict[str, Any]]]:
         """Wait for the step, shape its rewards in one round trip and return them."""
-        obs, rewards, dones, infos = self.venv.step_wait()
+        raw_obs, rewards, dones, infos = self.venv.step_wait()
+        obs = _obs_batch(raw_obs)
         dones = np.asarray(dones, dtype=np.bool_)
         done_rows = np.flatnonzero(dones)
         truncated = np.zeros(self.num_envs, dtype=np.bool_)
@@ -201,4 +204,4 @@ class ShapedVecEnv(VecEnvWrapper):
             info["knn_active"] = bool(result.knn_active[i])
             info["pool_version"] = result.pool_version
         self._obs = obs
-        return obs, result.rewards.astype(np.float32), dones, infos
+        return raw_obs, result.rewards.astype(np.float32), dones, infos
