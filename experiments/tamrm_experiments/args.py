@@ -69,4 +69,9 @@ def parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--plots", type=Path, help="plots directory (default: the --out path without .md)"
     )
+    rep.add_argument(
+        "--previous",
+        type=Path,
+        help="the first report's runs directory (e.g. experiments/runs-v1): shown as clean-v1",
+    )
     return top

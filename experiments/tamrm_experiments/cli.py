@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         from tamrm_experiments.report import write_report
 
         plots = args.plots or args.out.with_suffix("")
-        write_report(args.runs, args.out, plots)
+        write_report(args.runs, args.out, plots, args.previous)
         print(f"wrote {args.out} and plots in {plots}/")
         return 0
     return 2

@@ -155,6 +155,8 @@ def make_specs(
         for name in exps:
             exp = EXPERIMENTS[name]
             for var in exp.variants:
+                if not var.runnable:
+                    continue
                 if fidelities and var.fidelity not in fidelities:
                     continue
                 if variants and var.name not in variants:
@@ -167,4 +169,4 @@ def make_specs(
 
 def all_variants() -> list[str]:
     """Every variant name of every experiment."""
-    return sorted({v.name for e in EXPERIMENTS.values() for v in e.variants})
+    return sorted({v.name for e in EXPERIMENTS.values() for v in e.variants if v.runnable})

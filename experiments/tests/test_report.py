@@ -154,3 +154,27 @@ def test_each_experiment_module_defines_its_table_and_budgets():
         assert set(exp.paper) == set(ARMS), name
         for profile in PROFILES.values():
             assert profile.budgets[name] == exp.budgets[profile.name]
+
+
+def test_previous_runs_show_as_the_first_reports_variant(tmp_path):
+    runs, previous = tmp_path / "runs", tmp_path / "runs-v1"
+    runs.mkdir()
+    for spec in make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"]):
+        # The first report's layout and spec: no variant, no fidelity.
+        spec_dict = spec.to_dict()
+        for key in ("variant", "fidelity", "variant_settings"):
+            spec_dict.pop(key)
+        _write_run(previous, spec, [60 + spec.seed] * spec.budget.episodes)
+        meta_path = run_paths(previous, spec)[2]
+        meta = json.loads(meta_path.read_text())
+        meta["spec"] = spec_dict
+        meta_path.write_text(json.dumps(meta))
+    out = tmp_path / "reproduction.md"
+    write_report(runs, out, tmp_path / "plots", previous)
+    text = out.read_text()
+    assert "## Maze: clean, first report" in text
+    claims = text.split("## Claims")[1].split("## Status")[0]
+    assert "clean, first report" in claims
+    # Nothing of it is pending.
+    status = text.split("## Status of the grid")[1].split("## Pilot")[0]
+    assert all(line.endswith("| 0 |") for line in status.splitlines() if "first report" in line)

@@ -77,7 +77,7 @@ def test_complete_run_is_skipped_and_partial_is_not(tmp_path):
 def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
     from tamrm_experiments.configs import EXPERIMENTS
 
-    per_seed = 4 * sum(len(e.variants) for e in EXPERIMENTS.values())
+    per_seed = 4 * sum(v.runnable for e in EXPERIMENTS.values() for v in e.variants)
     specs = make_specs("full", seeds=2)
     assert len(specs) == 2 * per_seed
     assert {s.seed for s in specs[:per_seed]} == {0}

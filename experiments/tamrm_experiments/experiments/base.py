@@ -48,6 +48,8 @@ class Variant:
             override of the reward of a terminal step), and environment switches.
         budgets: Budgets per profile replacing the experiment's (e.g. a larger episode cap
             for the unwrapped mountain car).
+        runnable: False for a variant that only labels earlier runs (``clean-v1``): the
+            grid never schedules it.
     """
 
     name: str
@@ -55,6 +57,7 @@ class Variant:
     label: str
     settings: dict[str, Any] = field(default_factory=dict)
     budgets: dict[str, Budget] = field(default_factory=dict)
+    runnable: bool = True
 
 
 @dataclass(frozen=True)
@@ -246,4 +249,14 @@ def claim_word(better: bool | None) -> str:
 CLEAN_VARIANTS: tuple[Variant, ...] = (
     Variant("clean", "clean", "clean (SB3, gate_potential off)", {"gate_potential": False}),
     Variant("clean-gated", "clean", "clean (SB3, gate_potential on)", {"gate_potential": True}),
+    # The first report's runs (docs/reproduction/raw-runs.tar.gz, runs-v1/): SB3 learners,
+    # the potential ungated, the reduced ``full`` budgets, the maze's DQN on the (x, y)
+    # cell. Read by ``report --previous``; never run again.
+    Variant(
+        "clean-v1",
+        "clean",
+        "clean, first report (SB3, gate off, reduced budgets)",
+        {"gate_potential": False},
+        runnable=False,
+    ),
 )

@@ -78,6 +78,7 @@ class CartPole(ExperimentDef):
 
     def decorate(self, ax: Any) -> None:
         ax.axhline(195, color="k", ls=":", lw=0.8)
+        ax.set_ylim(0, 210)  # episodes last 1..200 steps; bands of few seeds overshoot
 
 
 #: The authors' cart pole (``Carpole_test/carpole.py``): their one-step actor-critic on the
