@@ -3,8 +3,9 @@
 # run every experiment x arm x seed on all cores (resumable: finished runs are skipped),
 # then regenerate docs/reproduction.md and its plots from the raw CSVs.
 #
-#   experiments/reproduce.sh                # full profile, 5 seeds
+#   experiments/reproduce.sh                # paper profile, every variant, 5 seeds
 #   experiments/reproduce.sh --seeds 10     # more seeds (reuses the first 5)
+#   experiments/reproduce.sh --fidelity authors --experiments cartpole   # a subset
 #   experiments/reproduce.sh --quick        # smoke test; report into experiments/runs-quick/
 #
 # Env: TAMRM_VENV (default ./.venv-exp), TAMRM_BIN (default target/release/tamrm).
@@ -23,4 +24,8 @@ for arg in "$@"; do
     fi
 done
 "$py" -m tamrm_experiments run --out "$runs" "$@"
-"$py" -m tamrm_experiments report --runs "$runs" --out "$report"
+previous=()
+if [ "$runs" = experiments/runs ] && [ -d experiments/runs-v1 ]; then
+    previous=(--previous experiments/runs-v1)  # the first report's runs, shown as clean-v1
+fi
+"$py" -m tamrm_experiments report --runs "$runs" --out "$report" "${previous[@]}"

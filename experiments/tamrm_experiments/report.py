@@ -780,27 +780,44 @@ def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
     return lines
 
 
-def _cost(groups: dict[Group, list[Run]]) -> list[str]:
+def _cost(groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, int]]) -> list[str]:
     lines = [
         "Cost per run (each environment step is one gRPC round trip to the server; 2 cores "
-        "shared with other work, runs under `nice`):",
+        "shared with other work, runs under `nice`), and what the pending runs of each "
+        "variant would cost at that rate (one run per core; runs in progress count whole):",
         "",
-        "| experiment | variant | runs | steps per run | wall time per run | steps/s |",
-        "|---|---|---|---|---|---|",
+        "| experiment | variant | runs | steps per run | wall time per run | steps/s "
+        "| pending runs | their estimated cost |",
+        "|---|---|---|---|---|---|---|---|",
     ]
+    total_pending = 0.0
     for (exp_name, variant), runs in groups.items():
-        if not runs:
-            continue
         exp = EXPERIMENTS[exp_name]
+        done = {(r.arm, r.seed) for r in runs}
+        pending = [
+            (a, sd)
+            for e, v, a, sd in requested
+            if (e, v) == (exp_name, variant) and (a, sd) not in done
+        ]
+        if not runs and not pending:
+            continue
         steps = t_interval([float(r.meta.get("total_steps", 0)) for r in runs])
         wall = t_interval([float(r.meta.get("wall_time_s", 0)) / 60 for r in runs])
         rate = t_interval([float(r.meta.get("steps_per_s") or math.nan) for r in runs])
+        est = "-"
+        if pending and runs:
+            hours = len(pending) * wall.mean / 60
+            total_pending += hours
+            est = f"{hours:,.1f} core-hours"
+        elif pending:
+            est = "unknown (no finished run yet)"
         lines.append(
             f"| {exp.short} | {exp.variant(variant).label} | {len(runs)} | "
-            f"{_fmt_interval(steps, '{:,.0f}')} | {_fmt_interval(wall, '{:,.1f}')} min | "
-            f"{_fmt_interval(rate, '{:,.0f}')} |"
+            f"{_fmt_interval(steps, '{:,.0f}')} | "
+            + (f"{_fmt_interval(wall, '{:,.1f}')} min" if runs else "-")
+            + f" | {_fmt_interval(rate, '{:,.0f}')} | {len(pending)} | {est} |"
         )
-    lines.append("")
+    lines += ["", f"Pending runs with a measured cost: {total_pending:,.1f} core-hours.", ""]
     return lines
 
 
@@ -859,13 +876,16 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
             "nothing about the method.",
             "",
         ]
-    n_req = len(requested)
-    n_done = sum(1 for r in runs if (r.experiment, r.variant, r.arm, r.seed) in set(requested))
+    asked = set(requested)
+    n_req = len(requested) - len(earlier)
+    n_done = sum(1 for r in current if (r.experiment, r.variant, r.arm, r.seed) in asked)
     lines += [
         "## Claims",
         "",
-        f"{n_done} of the {n_req} runs asked for so far are finished (status below); "
-        "the grid is resumable and later sessions continue it.",
+        f"{n_done} of the {n_req} runs of the current grid asked for so far are finished "
+        "(status below)"
+        + (f", besides the first report's {len(earlier)} runs" if earlier else "")
+        + "; the grid is resumable and later sessions continue it.",
         "",
     ]
     lines += _claims_table(_claim_rows(groups, requested))
@@ -878,7 +898,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
         lines += sec
     lines += ["## How this was run", ""]
     lines += _how_run(runs_dir, runs, out)
-    lines += _cost(groups)
+    lines += _cost(groups, requested)
     lines += ["## Settings and deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
     lines += ["", "## Reading these results", ""]
