@@ -134,6 +134,11 @@ class RefStream:
         self.episodes: list[list[object]] = [[] for _ in range(num_envs)]
         self.returns = [0.0] * num_envs
 
+    def abandon(self, env: int) -> None:
+        """SPEC §12: drop the env's current episode without offering it to the pool."""
+        self.episodes[env] = []
+        self.returns[env] = 0.0
+
     def shape(
         self,
         env: int,

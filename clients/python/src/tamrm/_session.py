@@ -67,6 +67,8 @@ class SessionCore(Generic[_R]):
         self.task_id = task_id
         self.num_envs = int(num_envs)
         self._episode_steps = np.zeros(self.num_envs, dtype=np.int64)
+        self._abandon_pending: list[int] = []
+        self._abandon_unconfirmed = np.zeros(self.num_envs, dtype=np.bool_)
         self._pool_version = 0
         self._closed = True
         self._error = None
@@ -174,6 +176,37 @@ class SessionCore(Generic[_R]):
             )
         )
 
+    def abandon(self, env_ids: npt.ArrayLike) -> None:
+        """Drop the current episodes of ``env_ids`` without offering them to the pool.
+
+        For an environment that crashed or was reset by hand in the middle of an episode
+        (SPEC v1.1 §12): its next step is step t = 0 of a new episode, and the unfinished
+        episode is never stored; the other environments' episodes go on. The wrappers
+        call this when an environment is reset before its episode ended.
+
+        Nothing is sent by this call (it is a plain method on the asyncio session too):
+        the ids travel in the ``abandon`` field of the next ``StepBatch`` that has
+        entries, which the server applies before that batch's entries. This saves a round
+        trip per reset and is equivalent, since an abandon changes neither the pool nor
+        the task's counters. ``episodes_in_progress`` and ``episode_steps`` reflect it at
+        once. Abandoning an environment again before that batch is a no-op.
+
+        Args:
+            env_ids: Integer environment ids (or one id), each ``< num_envs``, none twice.
+
+        Raises:
+            TypeError: ``env_ids`` does not hold integers.
+            ValueError: An id is out of range, listed twice, or ``env_ids`` is not 1-D.
+                Nothing is recorded.
+            SessionClosed: The session is closed.
+        """
+        self._check_open()
+        ids = _abandon_ids(env_ids, self.num_envs)
+        for env in ids:
+            if env not in self._abandon_pending:
+                self._abandon_pending.append(env)
+        self._episode_steps[ids] = 0
+
     def _exchange(self, step: StepInput) -> _R:
         """Send the step's batch (from :meth:`_prepare`) and decode the answer (:meth:`_shaped`)."""
         raise NotImplementedError
@@ -194,6 +227,8 @@ class SessionCore(Generic[_R]):
         self.task = Task._from_pb(resp.opened)
         self._pool_version = self.task.stats.pool_version
         self._episode_steps[:] = 0
+        self._abandon_pending.clear()  # a new stream: every episode starts anew anyway
+        self._abandon_unconfirmed[:] = False
         self._closed = False
         self._error = None
 
@@ -207,7 +242,11 @@ class SessionCore(Generic[_R]):
         self._check_open()
         prepared = prepare_batch(self.task.config, self.num_envs, step)
         if prepared.size == 0:
+            # Nothing is sent; pending abandons wait for a batch with entries.
             return StepResult._empty(self._pool_version)
+        prepared.request.steps.abandon.extend(self._abandon_pending)
+        # Sent now: the answer must show these envs starting over (_confirm_abandons).
+        self._abandon_unconfirmed[self._abandon_pending] = True
         return prepared
 
     def _shaped(self, resp: pb.ShapeResponse, prepared: PreparedBatch) -> StepResult:
@@ -224,11 +263,35 @@ class SessionCore(Generic[_R]):
             raise TamrmError(
                 f"the server answered {len(result)} entries for a batch of {env_ids.shape[0]}"
             )
+        del self._abandon_pending[: len(prepared.request.steps.abandon)]
+        self._confirm_abandons(result)
         # Rows of one env come in order, so the last assignment wins as it should.
         self._episode_steps[env_ids] = result.steps + 1
         self._episode_steps[env_ids[done]] = 0
+        self._episode_steps[self._abandon_pending] = 0  # abandoned since this batch was sent
         self._pool_version = result.pool_version
         return result
+
+    def _confirm_abandons(self, result: StepResult) -> None:
+        """Check that the first entry of each abandoned env started a new episode.
+
+        A server older than SPEC v1.1 ignores ``StepBatch.abandon`` (an unknown field) and
+        would go on with the dropped episode: fail loudly instead.
+
+        Raises:
+            TamrmError: ``UNIMPLEMENTED``, the server did not abandon the episode.
+        """
+        if not self._abandon_unconfirmed.any():
+            return
+        envs, first = np.unique(result.env_ids, return_index=True)
+        for env, row in zip(envs.tolist(), first.tolist(), strict=True):
+            if self._abandon_unconfirmed[env] and result.steps[row] != 0:
+                raise TamrmError(
+                    f"the server ignored StepBatch.abandon (SPEC v1.1 §12): env {env} went on "
+                    f"with its abandoned episode at step {result.steps[row]}; upgrade the server",
+                    grpc.StatusCode.UNIMPLEMENTED,
+                )
+        self._abandon_unconfirmed[envs] = False
 
     def _failed(self, err: BaseException) -> None:
         """Record that the stream ended with ``err``."""
@@ -242,6 +305,28 @@ class SessionCore(Generic[_R]):
         self._closed = True
         self._episode_steps[:] = 0
         return True
+
+
+def _abandon_ids(value: npt.ArrayLike, num_envs: int) -> list[int]:
+    """The ``abandon`` argument checked: integers, each in ``0..num_envs-1``, none twice."""
+    arr = np.atleast_1d(np.asarray(value))
+    if arr.size == 0:
+        return []
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"abandon: env ids must be integers, got dtype {arr.dtype}")
+    if arr.ndim != 1:
+        raise ValueError(f"abandon: env ids must be one-dimensional, got shape {arr.shape}")
+    ids: list[int] = arr.astype(np.int64).tolist()
+    seen: set[int] = set()
+    for env in ids:
+        if not 0 <= env < num_envs:
+            raise ValueError(
+                f"abandon: env id {env} is not in 0..{num_envs - 1} (num_envs={num_envs})"
+            )
+        if env in seen:
+            raise ValueError(f"abandon: env {env} is listed twice")
+        seen.add(env)
+    return ids
 
 
 class Session(SessionCore[StepResult], Closing):
@@ -318,8 +403,8 @@ class Session(SessionCore[StepResult], Closing):
 
         Episodes in progress are discarded by the server (SPEC §6: an episode whose
         stream ends before its final step is not stored); every environment starts a
-        new episode at its next step. The wrappers call this when an environment is
-        reset in the middle of an episode.
+        new episode at its next step. To drop only some environments' episodes, use
+        :meth:`abandon`.
         """
         self.close()
         self._open()

@@ -21,7 +21,6 @@ truncated one uses the value of the real last observation (SPEC §4).
 
 from __future__ import annotations
 
-import warnings
 from typing import Any, SupportsFloat
 
 import gymnasium
@@ -96,8 +95,8 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
 
     Each ``step`` sends one entry (action, reward, terminated, truncated and, with a
     ``value_fn``, V or Q of the previous and the new observation) and returns the shaped
-    reward. A ``reset`` in the middle of an episode restarts the session's stream so that
-    the unfinished episode is discarded by the server rather than continued.
+    reward. A ``reset`` in the middle of an episode abandons it (:meth:`tamrm.Session.abandon`)
+    so that the server drops the unfinished episode rather than continuing it.
 
     Args:
         env: The environment. Its action space must match the task: ``Discrete(n)`` for
@@ -136,10 +135,10 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
-        """Reset the environment; restart the stream if an episode was in progress."""
+        """Reset the environment; abandon its episode if one was in progress (SPEC §12)."""
         obs, info = self.env.reset(seed=seed, options=options)
         if self.session.episodes_in_progress[self.env_id]:
-            self.session.restart()
+            self.session.abandon([self.env_id])
         self._obs = obs
         return obs, info
 
@@ -244,8 +243,8 @@ class VectorShapedReward(VectorWrapper):
     ) -> tuple[Any, dict[str, Any]]:
         """Reset (all or, with ``options["reset_mask"]``, some) sub-environments.
 
-        Restarts the session's stream if an episode that is being reset was in progress
-        (the server then discards every unfinished episode of the session).
+        The episodes of the sub-environments reset in the middle of an episode are
+        abandoned (SPEC §12: dropped, not stored); the others go on.
         """
         # Read the mask first: gymnasium's vector envs pop it from ``options``.
         mask = np.ones(self.num_envs, dtype=np.bool_)
@@ -254,13 +253,7 @@ class VectorShapedReward(VectorWrapper):
         obs, info = self.env.reset(seed=seed, options=options)
         interrupted = self.session.episodes_in_progress & mask
         if interrupted.any():
-            if not mask.all() and (self.session.episodes_in_progress & ~mask).any():
-                warnings.warn(
-                    "resetting a sub-environment in the middle of an episode restarts the "
-                    "tamrm stream, which also discards the other unfinished episodes",
-                    stacklevel=2,
-                )
-            self.session.restart()
+            self.session.abandon(np.flatnonzero(interrupted))
         self._autoreset[mask] = False
         self._obs = obs
         return obs, info

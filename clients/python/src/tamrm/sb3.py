@@ -137,10 +137,11 @@ class ShapedVecEnv(VecEnvWrapper):
         return self
 
     def reset(self) -> VecEnvObs:
-        """Reset every sub-environment; restart the stream if episodes were in progress."""
+        """Reset every sub-environment; abandon the episodes that were in progress."""
         obs = self.venv.reset()
-        if self.session.episodes_in_progress.any():
-            self.session.restart()
+        in_progress = self.session.episodes_in_progress
+        if in_progress.any():
+            self.session.abandon(np.flatnonzero(in_progress))
         self._obs = _obs_batch(obs)
         return obs
 
