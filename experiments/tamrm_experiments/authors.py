@@ -29,13 +29,67 @@ __all__ = ["make_authors_env", "train_authors"]
 
 
 def make_authors_env(spec: RunSpec) -> Any:
-    """The authors' environment: unwrapped (no Gym time limit); the loop caps episodes."""
+    """The authors' environment: unwrapped (no Gym time limit; the loop caps episodes),
+    and for the maze their observation, the agent's 4 canvas coordinates in pixels."""
     import gymnasium as gym
 
-    env_id = {"cartpole": "CartPole-v1", "mountaincar": "MountainCar-v0"}[
-        EXPERIMENTS[spec.experiment].env
-    ]
-    return gym.make(env_id).unwrapped
+    env = EXPERIMENTS[spec.experiment].env
+    if env.startswith("maze"):
+        from tamrm_experiments.envs import MazeEnv
+
+        return CanvasCoords(MazeEnv(max_steps=spec.budget.max_episode_steps))
+    return gym.make({"cartpole": "CartPole-v1", "mountaincar": "MountainCar-v0"}[env]).unwrapped
+
+
+class CanvasCoords:
+    """Their maze's observation (``maze_env.py``): the agent's rectangle on a 40-pixel grid,
+    ``[40x + 2, 40y + 2, 40x + 38, 40y + 38]``. Same layout, start and goal as ours."""
+
+    def __init__(self, env: Any) -> None:
+        import gymnasium as gym
+
+        self.env = env
+        self.action_space = env.action_space
+        self.observation_space = gym.spaces.Box(0.0, 320.0, (4,), np.float32)
+
+    @staticmethod
+    def coords(obs: np.ndarray) -> np.ndarray:
+        """(x, y) -> the 4 canvas coordinates."""
+        x, y = float(obs[0]), float(obs[1])
+        return np.array([40 * x + 2, 40 * y + 2, 40 * x + 38, 40 * y + 38])
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        return self.coords(obs), info
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        obs, r, term, trunc, info = self.env.step(action)
+        return self.coords(obs), r, term, trunc, info
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def _make_learner(
+    settings: dict[str, Any], n_features: int, n_actions: int, rng: Any, gamma: float
+):
+    kind = settings["learner"]
+    if kind == "actor_critic":
+        return ActorCritic(n_features, n_actions, rng, gamma=gamma)
+    if kind == "maze_dqn":  # Maze_grid/RL_brain.py and run_maze.py
+        return TutorialDQN(
+            n_features,
+            n_actions,
+            rng,
+            lr=0.01,
+            gamma=gamma,
+            greedy_increment=None,
+            replace_target_iter=200,
+            memory_size=20_000,
+            hidden=10,
+            optimizer="adam",
+        )
+    return TutorialDQN(n_features, n_actions, rng, gamma=gamma)
 
 
 class ShapingMismatch(AssertionError):
@@ -65,12 +119,13 @@ def train_authors(
     env = make_authors_env(spec)
     n_features = env.observation_space.shape[0]
     n_actions = int(env.action_space.n)
-    learner: ActorCritic | TutorialDQN
-    if settings["learner"] == "actor_critic":
-        learner = ActorCritic(n_features, n_actions, rng, gamma=cfg["gamma"])
-    else:
-        learner = TutorialDQN(n_features, n_actions, rng, gamma=cfg["gamma"])
-    terminal_reward = float(settings["terminal_reward"])
+    learner = _make_learner(settings, n_features, n_actions, rng, cfg["gamma"])
+    terminal_reward = settings.get("terminal_reward")
+    timeout_reward = settings.get("timeout_reward")
+    # Their maze's run_maze.py never updates its observation (``ob_ = ob``): the agent
+    # acts on, stores and evaluates the start cell's observation at every step.
+    observation_bug = bool(settings.get("observation_bug", False))
+    maze_score = exp.env.startswith("maze")
     fixed_start = bool(settings.get("fixed_start", False))
     freeze = bool(settings.get("freeze_when_solved", False))
     success_is_truncation = exp.env == "cartpole"
@@ -84,7 +139,10 @@ def train_authors(
         ep = {"steps": 0, "env_return": 0.0, "shaped": 0.0, "knn": 0.0, "pot": 0.0, "active": 0}
         terminated = truncated = False
         pool_version = 0
+        start_obs = obs
         while not (terminated or truncated):
+            if observation_bug:
+                obs = start_obs
             action = learner.act(obs)
             obs_next, r_env, terminated, _trunc, _info = env.step(action)
             ep["steps"] += 1
@@ -100,6 +158,12 @@ def train_authors(
                     v = float(learner.q_values(obs).max())
                     v_next = float(learner.target_q_values(obs_next).max())
                 values, next_values = [v], [v_next]
+            scores = None
+            if maze_score and (terminated or truncated):
+                # Theirs: state_record.append(r * 100 / t), r = +1 at the goal, -1 on the
+                # time-out; t counts the steps before the last one.
+                last = 1.0 if terminated else -1.0
+                scores = [last * 100.0 / max(1, ep["steps"] - 1)]
             res = session.step(
                 [action],
                 [float(r_env)],
@@ -107,6 +171,7 @@ def train_authors(
                 [truncated],
                 values=values,
                 next_values=next_values,
+                episode_scores=scores,
             )
             knn, pot, active = (
                 float(res.knn_rewards[0]),
@@ -120,7 +185,11 @@ def train_authors(
                     f"{spec.key} step {total_steps}: server {shaped} != R + a r + b F = {mine}"
                 )
             pool_version = res.pool_version
-            reward = terminal_reward if terminated else shaped  # their override, after shaping
+            reward = shaped
+            if terminated and terminal_reward is not None:
+                reward = float(terminal_reward)  # their override, after the shaping
+            elif truncated and timeout_reward is not None:
+                reward = float(timeout_reward)
             if isinstance(learner, ActorCritic):
                 learner.learn(obs, action, reward, obs_next)
             else:
@@ -144,7 +213,7 @@ def train_authors(
                 "terminated": int(terminated),
                 "truncated": int(truncated),
                 "success": int(truncated if success_is_truncation else terminated),
-                "score": ep["env_return"],
+                "score": scores[0] if scores else ep["env_return"],
                 "task_phase": 0,
                 "pool_version": pool_version,
                 "total_steps": total_steps,
@@ -152,7 +221,7 @@ def train_authors(
         )
         # Their "solved" rule (cart pole): mean of the last 100 episodes >= 195.
         if freeze and not frozen and len(lengths) >= 100 and np.mean(lengths[-100:]) >= 195:
-            learner.freeze()  # type: ignore[union-attr]
+            learner.freeze()
             frozen = True
         if total_steps >= budget.max_total_steps:
             return {"episodes": episode, "total_steps": total_steps, "stopped_by_steps": True}

@@ -18,7 +18,10 @@ reproduction runs these transcriptions (the ``clean`` fidelity runs Stable-Basel
   500 learning steps (also before the first), a 50 000-transition ring buffer sampled
   uniformly over its whole capacity, learning on every step once more than 50 000 steps
   were taken, and a greedy probability that starts at 0 and grows by 5e-5 per learning
-  step up to 0.9 (epsilon 1 -> 0.1).
+  step up to 0.9 (epsilon 1 -> 0.1). Their maze (``Maze_grid/RL_brain.py``, ``DeepQNetwork``)
+  is the same DQN with 10 hidden units, Adam 0.01, a 20 000-transition buffer, the target
+  copied every 200 learning steps and a fixed greedy probability of 0.9
+  (``optimizer="adam"``, ``greedy_increment=None``).
 
 Both take a ``numpy.random.Generator`` so that a run is reproducible from its seed.
 """
@@ -206,20 +209,22 @@ class TutorialDQN:
         lr: float = 0.005,
         gamma: float = 0.9,
         greedy_max: float = 0.9,
-        greedy_increment: float = 5e-5,
+        greedy_increment: float | None = 5e-5,
         replace_target_iter: int = 500,
         memory_size: int = 50_000,
         batch_size: int = 32,
         hidden: int = 20,
         learn_after: int | None = None,
+        optimizer: str = "rmsprop",
     ) -> None:
         self.rng = rng
         self.n_actions = n_actions
         self.n_features = n_features
         self.gamma = gamma
-        self.greedy = 0.0
+        # No increment (their maze): greedy with probability greedy_max from the start.
+        self.greedy = 0.0 if greedy_increment else greedy_max
         self.greedy_max = greedy_max
-        self.greedy_increment = greedy_increment
+        self.greedy_increment = greedy_increment or 0.0
         self.replace_target_iter = replace_target_iter
         self.batch_size = batch_size
         self.memory = np.zeros((memory_size, 2 * n_features + 2))
@@ -229,7 +234,9 @@ class TutorialDQN:
         self.steps = 0
         self.q = MLP.init(rng, n_features, hidden, n_actions, 0.3)
         self.target = self.q.copy()
-        self.opt = RMSPropTF1(self.q.params(), lr)
+        self.opt: Adam | RMSPropTF1 = (
+            Adam(self.q.params(), lr) if optimizer == "adam" else RMSPropTF1(self.q.params(), lr)
+        )
 
     @property
     def epsilon(self) -> float:

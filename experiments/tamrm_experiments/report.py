@@ -503,8 +503,15 @@ DEVIATIONS = [
     "transcription of their `predict_modified`); F of a terminal step uses V(s') = 0 "
     "(theirs: the network's value), which the terminal overrides make irrelevant; they "
     "ran one seed, we run seeds 0..N-1 (network initialisation, action sampling, "
-    "environment). The authors' maze variants (their observation bug, |D| = 3 and 10) "
-    "are not implemented yet.",
+    "environment).",
+    "Authors' maze (`Maze_grid/run_maze.py`): the same layout, start and goal as ours; "
+    "the observation is the agent's 4 canvas coordinates; their DQN (10 hidden units, "
+    "Adam 0.01, greedy 0.9 from the start, learning once 20 000 steps were taken, target "
+    "every 200); both terms while the pool is full and 8 <= t < L_min (their `predict`: "
+    "every stored trajectory weighted, k = |D|, alpha 0.8, beta 0.3; PBRS only: beta 1); "
+    "+1 at the goal, -1 on the time-out at 10 000 steps, score +-100/t; |D| = 3 (their "
+    "run) and 10 (the paper); *bug*: their script's `ob_ = ob`, so the agent always sees "
+    "the start cell (as their saved results ran), and without it.",
     "**Clean fidelity**: Stable-Baselines3 learners on `tamrm.sb3.ShapedVecEnv` (one "
     "gRPC round trip per environment step, the potential from the model's own estimates: "
     "A2C critic V(s), DQN max_a Q(s, a) of the online network), the service's defaults "

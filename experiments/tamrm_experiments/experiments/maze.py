@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from tamrm_experiments.experiments.base import CLEAN_VARIANTS, Budget, Claim, ExperimentDef
+from tamrm_experiments.experiments.base import (
+    CLEAN_VARIANTS,
+    Budget,
+    Claim,
+    ExperimentDef,
+    Variant,
+)
 
 __all__ = ["MAZE", "MAZE_SETUP", "Maze"]
 
@@ -37,6 +43,47 @@ MAZE_SETUP: dict[str, Any] = {
     "max_episode_steps": 10_000,
     "score_from_info": True,
 }
+
+
+def _authors(pool: int, bug: bool) -> Variant:
+    return Variant(
+        f"authors{'-bug' if bug else ''}-{pool}",
+        "authors",
+        f"authors (their DQN, |D| = k = {pool}"
+        + (", their observation bug)" if bug else ", observation updated)"),
+        {
+            "learner": "maze_dqn",
+            "tamrm": {
+                "pool_capacity": pool,
+                "k": pool,
+                "start_step": 8,
+                "alpha": 0.8,
+                "beta": 0.3,
+                "gamma": 0.9,
+            },
+            "pbrs_beta": 1.0,
+            "terminal_reward": None,
+            "timeout_reward": -1.0,
+            "observation_bug": bug,
+        },
+        AUTHORS_BUDGETS,
+    )
+
+
+#: The authors' maze (``Maze_grid/run_maze.py``, ``maze_env.py``): the same 8x8 layout,
+#: start and goal; observation = the agent's 4 canvas coordinates; their DQN (10 hidden
+#: units, Adam 0.01, greedy 0.9 from the start, learning once 20 000 steps were taken);
+#: shaping ``r += 0.8 * predict + 0.3 * (0.9 max Q_target(s') - max Q(s))`` while the
+#: pool of 3 (their run; 10 in the paper) is full and 8 <= t < L_min - 1, ``predict``
+#: weighting every stored trajectory (k = |D|); reward +1 at the goal, -1 on the time-out
+#: after 10 000 steps; score +-100 / t. ``-bug``: their script's ``ob_ = ob`` (the agent
+#: always sees the start cell), as their saved results ran.
+AUTHORS_BUDGETS = {
+    "paper": Budget(episodes=200, max_episode_steps=10_000, max_total_steps=2_100_000),
+    "full": Budget(episodes=200, max_episode_steps=10_000, max_total_steps=2_100_000),
+    "quick": Budget(episodes=3, max_episode_steps=200, max_total_steps=600),
+}
+AUTHORS_VARIANTS = tuple(_authors(pool, bug) for bug in (True, False) for pool in (3, 10))
 
 
 class Maze(ExperimentDef):
@@ -77,5 +124,5 @@ MAZE = Maze(
         "paper": Budget(episodes=200, max_episode_steps=10_000, max_total_steps=2_000_000),
         "quick": Budget(episodes=6, max_episode_steps=200, max_total_steps=1_500),
     },
-    variants=CLEAN_VARIANTS,
+    variants=(*CLEAN_VARIANTS, *AUTHORS_VARIANTS),
 )
