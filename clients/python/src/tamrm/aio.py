@@ -11,7 +11,7 @@ but every call is a coroutine::
             shaped = await session.step(actions, rewards, terminated, truncated)
 
 Requests and answers are built and decoded by the same code as the synchronous client's
-(``tamrm._ops`` for the unary calls, :class:`tamrm._session.SessionCore` for the stream);
+(``tamrm._ops`` for the unary calls, :class:`tamrm._stream.SessionCore` for the stream);
 this module only awaits them.
 """
 
@@ -30,7 +30,7 @@ from tamrm._client import ClientCore
 from tamrm._closing import AsyncClosing
 from tamrm._errors import TamrmError, from_rpc_error, from_status
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
-from tamrm._session import SessionCore
+from tamrm._stream import SessionCore
 from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskOptions
 
 if TYPE_CHECKING:
