@@ -189,7 +189,6 @@ struct Fixture {
     pool: Pool,
     episode_actions: Actions,
     rng: Rng,
-    dim: usize,
 }
 
 impl Fixture {
@@ -217,13 +216,12 @@ impl Fixture {
             pool,
             episode_actions,
             rng,
-            dim,
         }
     }
 
     /// An episode that has taken steps 0..t.
     fn episode_at(&self, t: usize) -> Episode {
-        let mut ep = Episode::new(self.dim);
+        let mut ep = Episode::new(self.cfg.action_space);
         let mut scratch = KnnScratch::default();
         for j in 0..t {
             ep.step(

@@ -1,11 +1,17 @@
 //! tamrm: the trajectory action meta-reward model (TAMRM) as a gRPC service.
 //!
-//! Layers, from the inside out:
-//! - [`core`]: the pure shaping engine (pool, distances, kNN reward, potential term);
-//! - [`store`]: where pools live (memory, or a data directory on disk);
-//! - [`registry`]: tasks, their pools and the stream-facing step path, with locking;
-//! - [`service`]: the `tamrm.v1.Shaping` gRPC mapping and validation;
-//! - [`server`] and [`settings`]: the server assembly, CLI settings and telemetry.
+//! Layers, from the inside out (`docs/architecture.md`):
+//! - [`core`]: the pure shaping engine (pool, distances, kNN reward, potential term,
+//!   the action validator): no I/O, no async, no locks;
+//! - [`store`]: where task configs and pools live (memory, a data directory), behind one
+//!   async trait with conditional commits;
+//! - [`registry`]: tasks, their published pools, limits, and the serialised commit path;
+//! - [`session`]: the transport-free stream: episodes, batch validation, the step path;
+//! - [`service`]: the `tamrm.v1.Shaping` gRPC mapping only; errors become statuses in one
+//!   place ([`service::status`]);
+//! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings.
+
+#![warn(missing_docs)]
 
 pub mod core;
 
@@ -17,8 +23,10 @@ pub mod proto {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("tamrm_descriptor");
 }
 pub mod error;
+pub mod limits;
 pub mod registry;
 pub mod server;
 pub mod service;
+pub mod session;
 pub mod settings;
 pub mod store;

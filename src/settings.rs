@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
-use crate::registry::Limits;
+use crate::limits::{Limits, LimitsLayer};
 
 /// Default listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
@@ -44,21 +44,9 @@ pub struct ServeArgs {
     /// Write the bound address (`host:port`) to this file once listening.
     #[arg(long, env = "TAMRM_PORT_FILE", value_name = "FILE")]
     pub port_file: Option<PathBuf>,
-    /// Most tasks the server holds [default: 10000].
-    #[arg(long, env = "TAMRM_MAX_TASKS")]
-    pub max_tasks: Option<usize>,
-    /// Most environments per Shape stream [default: 4096].
-    #[arg(long, env = "TAMRM_MAX_ENVS_PER_STREAM")]
-    pub max_envs_per_stream: Option<u32>,
-    /// Most entries per StepBatch [default: 65536].
-    #[arg(long, env = "TAMRM_MAX_BATCH_ENTRIES")]
-    pub max_batch_entries: Option<usize>,
-    /// Largest gRPC message in bytes [default: 67108864].
-    #[arg(long, env = "TAMRM_MAX_MESSAGE_BYTES")]
-    pub max_message_bytes: Option<usize>,
-    /// Largest pool_capacity a task may ask for [default: 10000].
-    #[arg(long, env = "TAMRM_MAX_POOL_CAPACITY")]
-    pub max_pool_capacity: Option<u32>,
+    /// Server limits (each also `TAMRM_<NAME>` and `[limits] <name>` in the file).
+    #[command(flatten)]
+    pub limits: LimitsLayer,
     /// Seconds to wait for open streams at shutdown before exiting anyway [default: 30].
     #[arg(long, env = "TAMRM_SHUTDOWN_GRACE_SECS")]
     pub shutdown_grace_secs: Option<u64>,
@@ -77,23 +65,7 @@ pub struct FileSettings {
     /// Shutdown grace period, seconds.
     pub shutdown_grace_secs: Option<u64>,
     /// Limits (any subset).
-    pub limits: Option<FileLimits>,
-}
-
-/// `[limits]` of the config file.
-#[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FileLimits {
-    /// See [`Limits::max_tasks`].
-    pub max_tasks: Option<usize>,
-    /// See [`Limits::max_envs_per_stream`].
-    pub max_envs_per_stream: Option<u32>,
-    /// See [`Limits::max_batch_entries`].
-    pub max_batch_entries: Option<usize>,
-    /// See [`Limits::max_message_bytes`].
-    pub max_message_bytes: Option<usize>,
-    /// See [`Limits::max_pool_capacity`].
-    pub max_pool_capacity: Option<u32>,
+    pub limits: Option<LimitsLayer>,
 }
 
 /// Resolved server settings.
@@ -156,12 +128,7 @@ impl Settings {
         }
         set(&mut self.shutdown_grace_secs, f.shutdown_grace_secs);
         if let Some(l) = &f.limits {
-            let m = &mut self.limits;
-            set(&mut m.max_tasks, l.max_tasks);
-            set(&mut m.max_envs_per_stream, l.max_envs_per_stream);
-            set(&mut m.max_batch_entries, l.max_batch_entries);
-            set(&mut m.max_message_bytes, l.max_message_bytes);
-            set(&mut m.max_pool_capacity, l.max_pool_capacity);
+            self.limits.apply(l);
         }
     }
 
@@ -174,12 +141,7 @@ impl Settings {
             self.port_file.clone_from(&a.port_file);
         }
         set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
-        let m = &mut self.limits;
-        set(&mut m.max_tasks, a.max_tasks);
-        set(&mut m.max_envs_per_stream, a.max_envs_per_stream);
-        set(&mut m.max_batch_entries, a.max_batch_entries);
-        set(&mut m.max_message_bytes, a.max_message_bytes);
-        set(&mut m.max_pool_capacity, a.max_pool_capacity);
+        self.limits.apply(&a.limits);
     }
 }
 

@@ -1059,6 +1059,7 @@ async fn create_task_is_idempotent_only_for_the_same_resolved_config() {
         beta: Some(0.8),
         gamma: Some(0.99),
         max_trajectory_len: Some(100_000),
+        gate_potential: Some(false),
     };
     assert_eq!(
         created.config.unwrap(),

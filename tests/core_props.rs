@@ -29,8 +29,8 @@ use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::{TestCaseError, TestRunner};
 use tamrm::core::{
-    ActionRef, ActionSeq, Episode, KnnScratch, Pool, PoolChange, StepInput, StepOutput, TaskConfig,
-    TaskConfigInput, Values,
+    ActionRef, ActionSeq, ActionSpace, Episode, KnnScratch, Pool, PoolChange, StepInput,
+    StepOutput, TaskConfig, TaskConfigInput, Values,
 };
 
 // ---------------------------------------------------------------------------------------
@@ -60,12 +60,15 @@ enum Space {
     C(u32),
 }
 
+/// For tests where only the kind of action matters.
+const ANY_DISCRETE: ActionSpace = ActionSpace::Discrete { num_actions: 2 };
+
 impl Space {
-    /// Floats per action as the core wants it (0 = discrete).
-    fn dim(self) -> usize {
+    /// The core's action space.
+    fn to_core(self) -> ActionSpace {
         match self {
-            Space::D(_) => 0,
-            Space::C(m) => m as usize,
+            Space::D(n) => ActionSpace::Discrete { num_actions: n },
+            Space::C(m) => ActionSpace::Continuous { action_dim: m },
         }
     }
 }
@@ -102,6 +105,8 @@ struct MCfg {
     beta: f64,
     gamma: f64,
     max_trajectory_len: usize,
+    /// SPEC §4 (v1.1): F only where the kNN term is active.
+    gate_potential: bool,
 }
 
 impl MCfg {
@@ -121,6 +126,7 @@ impl MCfg {
             beta: Some(self.beta),
             gamma: Some(self.gamma),
             max_trajectory_len: Some(self.max_trajectory_len as u32),
+            gate_potential: Some(self.gate_potential),
         }
     }
 }
@@ -490,10 +496,11 @@ fn config() -> impl Strategy<Value = MCfg> {
                 weight(),
                 gamma.clone(),
                 prop_oneof![1usize..=12, 6usize..=12],
+                any::<bool>(),
             )
         })
         .prop_map(
-            |(space, capacity, k, start_step, min_pool_size, alpha, beta, gamma, mtl)| MCfg {
+            |(space, capacity, k, start_step, min_pool_size, alpha, beta, gamma, mtl, gate)| MCfg {
                 space,
                 capacity,
                 k,
@@ -503,6 +510,7 @@ fn config() -> impl Strategy<Value = MCfg> {
                 beta,
                 gamma,
                 max_trajectory_len: mtl,
+                gate_potential: gate,
             },
         )
 }
@@ -577,7 +585,7 @@ fn to_acts(seq: &ActionSeq) -> Vec<Act> {
 }
 
 fn to_seq(acts: &[Act], space: Space) -> ActionSeq {
-    let mut s = ActionSeq::empty(space.dim());
+    let mut s = ActionSeq::empty(space.to_core());
     for a in acts {
         s.push(a.as_ref());
     }
@@ -653,7 +661,7 @@ fn run_scenario(sc: &Scenario) -> Result<Coverage, TestCaseError> {
         offer_both(&mut pool, &mut model, acts, *score, c.space, &mut cov)?;
     }
     let mut episodes: Vec<Episode> = (0..sc.streams)
-        .map(|_| Episode::new(c.space.dim()))
+        .map(|_| Episode::new(c.space.to_core()))
         .collect();
     let mut streams: Vec<MStream> = (0..sc.streams).map(|_| MStream::default()).collect();
     let mut scratch = KnnScratch::default();
@@ -678,7 +686,11 @@ fn run_scenario(sc: &Scenario) -> Result<Coverage, TestCaseError> {
                 ms.rewards.push(*reward);
 
                 let knn = model_knn(&c, &model, &ms.acts);
-                let f = model_potential(&values, c.gamma, *terminated);
+                let f = if c.gate_potential && !knn.active {
+                    0.0
+                } else {
+                    model_potential(&values, c.gamma, *terminated)
+                };
                 let want = StepOutput {
                     reward: reward + c.alpha * knn.r + c.beta * f,
                     knn_reward: knn.r,
@@ -875,7 +887,7 @@ fn equidistant_from_best_and_worst_gives_zero() {
     let cfg = dcfg(3, 2, 2, 0, 2);
     // best [0, 0] S = 10 → x = 1; worst [1, 1] S = −4 → x = 0.
     let pool = pool_of(2, &[(&[0, 0], 10.0), (&[1, 1], -4.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     // t = 0, a = 2: dis = (2, 2), no exact match, P = (½)/(½+½) = ½ each,
     // f = 1·½ + 0·½ = ½, r = e^½ − e^½ = 0, R_meta = R = 0.
     let out = step(&mut ep, &cfg, &pool, 2);
@@ -893,7 +905,7 @@ fn exact_match_with_the_best_gives_e_minus_sqrt_e() {
     let cfg = dcfg(3, 3, 3, 0, 3);
     // x: [0,1] S=3 → 1, [1,1] S=1 → 0, [2,1] S=2 → ½.
     let pool = pool_of(3, &[(&[0, 1], 3.0), (&[1, 1], 1.0), (&[2, 1], 2.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     // t = 0, a = 0: dis = (0, 2, 2) → Z = {best}, P = (1, 0, 0), f = 1, r = e − e^½.
     let out = step(&mut ep, &cfg, &pool, 0);
     assert_eq!(out.knn_reward, 1f64.exp() - sqrt_e());
@@ -907,7 +919,7 @@ fn exact_match_with_the_best_gives_e_minus_sqrt_e() {
     // Two exact matches share P: [0,1] x = 1 and [0,2] x = 0 both match a = 0:
     // P = (½, ½, 0), f = ½·1 + ½·0 + 0·½ = ½, r = 0.
     let pool = pool_of(3, &[(&[0, 1], 3.0), (&[0, 2], 1.0), (&[2, 1], 2.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     assert_eq!(step(&mut ep, &cfg, &pool, 0).knn_reward, 0.0);
 }
 
@@ -919,7 +931,7 @@ fn top_k_is_not_renormalised_and_ties_prefer_higher_scores() {
     let run = |k: u32| {
         let cfg = dcfg(4, 3, k, 0, 3);
         let pool = pool_of(3, trajs);
-        let mut ep = Episode::new(0);
+        let mut ep = Episode::new(ANY_DISCRETE);
         let r0 = step(&mut ep, &cfg, &pool, 0).knn_reward;
         let r1 = step(&mut ep, &cfg, &pool, 1).knn_reward;
         (r0, r1)
@@ -941,7 +953,7 @@ fn top_k_is_not_renormalised_and_ties_prefer_higher_scores() {
 fn start_step_is_the_first_active_step() {
     let cfg = dcfg(2, 2, 2, 2, 2);
     let pool = pool_of(2, &[(&[0; 6], 1.0), (&[1; 6], 0.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     for t in 0..2 {
         let out = step(&mut ep, &cfg, &pool, 0);
         assert_eq!((out.step, out.knn_active, out.knn_reward), (t, false, 0.0));
@@ -957,7 +969,7 @@ fn the_shortest_trajectory_bounds_the_active_steps() {
     let cfg = dcfg(2, 2, 2, 0, 2);
     // L_min = 3 (the other trajectory has 6 actions).
     let pool = pool_of(2, &[(&[0; 3], 1.0), (&[1; 6], 0.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     for t in 0..3 {
         assert!(step(&mut ep, &cfg, &pool, 0).knn_active, "t = {t} < L_min");
     }
@@ -977,7 +989,7 @@ fn max_trajectory_len_bounds_the_active_steps_and_the_recording() {
     .unwrap();
     // Seeded trajectories longer than max_trajectory_len (the core accepts them).
     let pool = pool_of(2, &[(&[0; 6], 1.0), (&[1; 6], 0.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     assert!(step(&mut ep, &cfg, &pool, 0).knn_active);
     assert!(step(&mut ep, &cfg, &pool, 1).knn_active); // t = 1 < 2
     let out = step(&mut ep, &cfg, &pool, 1); // t = 2 == max_trajectory_len
@@ -1000,7 +1012,7 @@ fn min_pool_size_and_a_trajectory_inserted_mid_episode() {
     let cfg = dcfg(2, 3, 3, 0, 3);
     // x: A = [0,0,0,0] S = 1 → 1, B = [1,1,1,1] S = 0 → 0.
     let mut pool = pool_of(3, &[(&[0; 4], 1.0), (&[1; 4], 0.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     // |D| = 2 < min_pool_size = 3: inactive.
     assert!(!step(&mut ep, &cfg, &pool, 0).knn_active);
     assert!(!step(&mut ep, &cfg, &pool, 1).knn_active);
@@ -1020,7 +1032,7 @@ fn min_pool_size_and_a_trajectory_inserted_mid_episode() {
 fn reset_mid_episode_then_refill() {
     let cfg = dcfg(2, 2, 2, 0, 1);
     let mut pool = pool_of(2, &[(&[0; 5], 1.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     // One trajectory, dis = 0: exact match, x = 1 (S_max = S_min) → e − e^½.
     assert_eq!(
         step(&mut ep, &cfg, &pool, 0).knn_reward,
@@ -1053,7 +1065,7 @@ fn terminated_and_truncated_potentials() {
         next_q: &[0.5, -1.0, 4.0],
     };
     let shape = |values, terminated, truncated| {
-        let mut ep = Episode::new(0);
+        let mut ep = Episode::new(ANY_DISCRETE);
         let (out, _) = ep.step(
             &cfg,
             &pool,
@@ -1091,7 +1103,7 @@ fn terminated_and_truncated_potentials() {
 fn episode_score_is_the_client_score_or_the_sum_of_rewards() {
     let cfg = dcfg(2, 1, 1, 0, 1);
     let mut pool = Pool::new(1);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     let mut scratch = KnnScratch::default();
     let mut run = |ep: &mut Episode, pool: &mut Pool, rewards: &[f64], score: Option<f64>| {
         let mut end = None;
@@ -1149,7 +1161,7 @@ fn the_ending_step_is_shaped_before_its_own_insertion() {
     let cfg = dcfg(3, 3, 3, 0, 1);
     // A = [1] S = 0 → x = 0, B = [2] S = 1 → x = 1.
     let mut pool = pool_of(3, &[(&[1], 0.0), (&[2], 1.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     let (out, end) = ep.step(
         &cfg,
         &pool,
@@ -1194,7 +1206,7 @@ fn a_continuous_prefix_at_equal_distances() {
             .unwrap();
         pool.apply(&change);
     }
-    let mut ep = Episode::new(2);
+    let mut ep = Episode::new(ActionSpace::Continuous { action_dim: 2 });
     let mut scratch = KnnScratch::default();
     let mut shape = |ep: &mut Episode, a: &[f32]| {
         let inp = StepInput {
@@ -1227,7 +1239,7 @@ fn normalised_scores_do_not_overflow() {
     let pool = pool_of(2, &[(&[0, 0], 1e308), (&[1, 1], -1e308)]);
     assert_eq!(pool.xs(), &[1.0, 0.0]);
     // a = 0: exact match with the best → f = 1 → r = e − e^½.
-    let out = step(&mut Episode::new(0), &cfg, &pool, 0);
+    let out = step(&mut Episode::new(ANY_DISCRETE), &cfg, &pool, 0);
     assert_eq!(out.knn_reward, 1f64.exp() - sqrt_e());
 }
 
@@ -1239,7 +1251,7 @@ fn normalised_scores_do_not_overflow() {
 fn an_overflowing_reward_sum_never_poisons_the_pool() {
     let cfg = dcfg(2, 2, 2, 0, 1);
     let mut pool = pool_of(2, &[(&[0, 0], 0.0)]);
-    let mut ep = Episode::new(0);
+    let mut ep = Episode::new(ANY_DISCRETE);
     let mut scratch = KnnScratch::default();
     ep.step(&cfg, &pool, &input(0, 1e308), &mut scratch);
     let last = StepInput {

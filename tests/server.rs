@@ -65,6 +65,7 @@ impl Cfg {
             beta: Some(self.beta),
             gamma: Some(self.gamma),
             max_trajectory_len: Some(self.max_len as u32),
+            gate_potential: Some(false),
         }
     }
 }
@@ -562,6 +563,7 @@ async fn task_lifecycle() {
         beta: Some(0.8),
         gamma: Some(0.99),
         max_trajectory_len: Some(100_000),
+        gate_potential: Some(false),
     };
     assert_eq!(t.config.as_ref(), Some(&want_config));
     assert_eq!(

@@ -1,4 +1,7 @@
-//! Action encoding and the per-step distance δ (SPEC §2).
+//! Action encoding, the per-step distance δ (SPEC §2), and the one validator of action
+//! columns against a task's action space.
+
+use super::config::ActionSpace;
 
 /// One action, borrowed: a discrete index or a continuous vector.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -24,16 +27,14 @@ pub enum ActionSeq {
 }
 
 impl ActionSeq {
-    /// An empty sequence for an action space with `action_dim` floats per action
-    /// (0 means discrete).
-    pub fn empty(action_dim: usize) -> ActionSeq {
-        if action_dim == 0 {
-            ActionSeq::Discrete(Vec::new())
-        } else {
-            ActionSeq::Continuous {
-                dim: action_dim,
+    /// An empty sequence of actions of `space`.
+    pub fn empty(space: ActionSpace) -> ActionSeq {
+        match space {
+            ActionSpace::Discrete { .. } => ActionSeq::Discrete(Vec::new()),
+            ActionSpace::Continuous { action_dim } => ActionSeq::Continuous {
+                dim: action_dim as usize,
                 data: Vec::new(),
-            }
+            },
         }
     }
 
@@ -41,7 +42,10 @@ impl ActionSeq {
     pub fn empty_like(&self) -> ActionSeq {
         match self {
             ActionSeq::Discrete(_) => ActionSeq::Discrete(Vec::new()),
-            ActionSeq::Continuous { dim, .. } => ActionSeq::empty(*dim),
+            ActionSeq::Continuous { dim, .. } => ActionSeq::Continuous {
+                dim: *dim,
+                data: Vec::new(),
+            },
         }
     }
 
@@ -95,6 +99,169 @@ impl ActionSeq {
     }
 }
 
+/// A column of actions that breaks its task's action space: `column` is `"actions"` or
+/// `"action_vectors"`, `index` the offending element when one is to blame. Callers prefix
+/// the field path of their message (`steps.`, `trajectory.`, ...).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ActionError {
+    /// `"actions"` (discrete) or `"action_vectors"` (continuous).
+    pub column: &'static str,
+    /// The offending element of the column, if one is to blame.
+    pub index: Option<usize>,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl ActionError {
+    /// The field path under `prefix`, e.g. `steps.actions[3]`.
+    pub fn field(&self, prefix: &str) -> String {
+        match self.index {
+            Some(i) => format!("{prefix}{}[{i}]", self.column),
+            None => format!("{prefix}{}", self.column),
+        }
+    }
+}
+
+impl std::fmt::Display for ActionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.field(""), self.message)
+    }
+}
+
+/// How many actions a column must hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ActionCount<'a> {
+    /// Exactly this many; `what` explains where the number comes from (for the message).
+    Exactly(usize, &'a str),
+    /// Any number ≥ 1 (a stored or seeded trajectory).
+    AtLeastOne,
+    /// Any number, zero included (a resumed episode's prefix).
+    Any,
+}
+
+fn action_error(column: &'static str, index: Option<usize>, message: String) -> ActionError {
+    ActionError {
+        column,
+        index,
+        message,
+    }
+}
+
+impl ActionSpace {
+    /// Checks a pair of action columns against this space — the one validator of actions
+    /// for batches, trajectories, stored files and resumed episodes: the column of the
+    /// other kind is empty, the length fits `count`, discrete actions are `< num_actions`
+    /// and continuous ones finite. Returns the number of actions.
+    pub fn check_actions(
+        &self,
+        actions: &[u32],
+        action_vectors: &[f32],
+        count: ActionCount<'_>,
+    ) -> Result<usize, ActionError> {
+        let len = match *self {
+            ActionSpace::Discrete { num_actions } => {
+                if !action_vectors.is_empty() {
+                    return Err(action_error(
+                        "action_vectors",
+                        None,
+                        "must be empty for a discrete task (use actions)".into(),
+                    ));
+                }
+                if let ActionCount::Exactly(b, what) = count {
+                    if actions.len() != b {
+                        return Err(action_error(
+                            "actions",
+                            None,
+                            format!("has {} entries, expected {b} = {what}", actions.len()),
+                        ));
+                    }
+                }
+                if let Some((i, a)) = actions.iter().enumerate().find(|(_, &a)| a >= num_actions) {
+                    return Err(action_error(
+                        "actions",
+                        Some(i),
+                        format!("action {a} out of range for num_actions {num_actions}"),
+                    ));
+                }
+                actions.len()
+            }
+            ActionSpace::Continuous { action_dim } => {
+                if !actions.is_empty() {
+                    return Err(action_error(
+                        "actions",
+                        None,
+                        "must be empty for a continuous task (use action_vectors)".into(),
+                    ));
+                }
+                let m = action_dim as usize;
+                match count {
+                    ActionCount::Exactly(b, what) => {
+                        if Some(action_vectors.len()) != b.checked_mul(m) {
+                            return Err(action_error(
+                                "action_vectors",
+                                None,
+                                format!(
+                                    "has {} entries, expected {} = {what} x action_dim = {b} x {m}",
+                                    action_vectors.len(),
+                                    b.saturating_mul(m)
+                                ),
+                            ));
+                        }
+                    }
+                    ActionCount::AtLeastOne | ActionCount::Any => {
+                        if !action_vectors.len().is_multiple_of(m) {
+                            return Err(action_error(
+                                "action_vectors",
+                                None,
+                                format!(
+                                    "length {} is not a multiple of action_dim {m}",
+                                    action_vectors.len()
+                                ),
+                            ));
+                        }
+                    }
+                }
+                if let Some(i) = action_vectors.iter().position(|x| !x.is_finite()) {
+                    return Err(action_error(
+                        "action_vectors",
+                        Some(i),
+                        format!("must be finite, got {}", action_vectors[i]),
+                    ));
+                }
+                action_vectors.len() / m
+            }
+        };
+        Ok(len)
+    }
+
+    /// Checks a column pair like [`ActionSpace::check_actions`] and takes it as a sequence.
+    pub fn to_seq(
+        &self,
+        actions: Vec<u32>,
+        action_vectors: Vec<f32>,
+        count: ActionCount<'_>,
+    ) -> Result<ActionSeq, ActionError> {
+        let len = self.check_actions(&actions, &action_vectors, count)?;
+        if len == 0 && count == ActionCount::AtLeastOne {
+            return Err(action_error(
+                match self {
+                    ActionSpace::Discrete { .. } => "actions",
+                    ActionSpace::Continuous { .. } => "action_vectors",
+                },
+                None,
+                "must hold at least one action".into(),
+            ));
+        }
+        Ok(match *self {
+            ActionSpace::Discrete { .. } => ActionSeq::Discrete(actions),
+            ActionSpace::Continuous { action_dim } => ActionSeq::Continuous {
+                dim: action_dim as usize,
+                data: action_vectors,
+            },
+        })
+    }
+}
+
 /// δ(a, a') = ‖e(a) − e(a')‖²: 0 or 2 for one-hot encoded discrete actions, the squared
 /// Euclidean distance (in f64) for continuous ones.
 #[inline]
@@ -142,15 +309,59 @@ mod tests {
     }
 
     #[test]
+    fn one_validator_for_every_column_pair() {
+        let d = ActionSpace::Discrete { num_actions: 3 };
+        let c = ActionSpace::Continuous { action_dim: 2 };
+        let n = ActionCount::Exactly(2, "len(rewards)");
+        assert_eq!(d.check_actions(&[0, 2], &[], n), Ok(2));
+        let e = d.check_actions(&[0, 3], &[], n).unwrap_err();
+        assert_eq!(e.field("steps."), "steps.actions[1]");
+        assert!(e.message.contains("out of range for num_actions 3"), "{e}");
+        assert_eq!(
+            d.check_actions(&[0], &[], n).unwrap_err().field(""),
+            "actions"
+        );
+        assert_eq!(
+            d.check_actions(&[0, 1], &[1.0], n).unwrap_err().field(""),
+            "action_vectors"
+        );
+        assert_eq!(c.check_actions(&[], &[0.0; 4], n), Ok(2));
+        assert_eq!(
+            c.check_actions(&[], &[0.0, f32::NAN, 0.0, 0.0], n)
+                .unwrap_err()
+                .field(""),
+            "action_vectors[1]"
+        );
+        assert_eq!(
+            c.check_actions(&[1], &[0.0; 4], n).unwrap_err().field(""),
+            "actions"
+        );
+        assert!(c
+            .check_actions(&[], &[0.0; 3], ActionCount::Any)
+            .unwrap_err()
+            .message
+            .contains("not a multiple of action_dim 2"));
+        assert_eq!(c.check_actions(&[], &[], ActionCount::Any), Ok(0));
+        assert!(d.to_seq(vec![], vec![], ActionCount::AtLeastOne).is_err());
+        assert_eq!(
+            c.to_seq(vec![], vec![1.0, 2.0], ActionCount::AtLeastOne),
+            Ok(ActionSeq::Continuous {
+                dim: 2,
+                data: vec![1.0, 2.0]
+            })
+        );
+    }
+
+    #[test]
     fn sequences_push_get_truncate() {
-        let mut s = ActionSeq::empty(2);
+        let mut s = ActionSeq::empty(ActionSpace::Continuous { action_dim: 2 });
         s.push(ActionRef::Continuous(&[1.0, 2.0]));
         s.push(ActionRef::Continuous(&[3.0, 4.0]));
         assert_eq!(s.len(), 2);
         assert_eq!(s.get(1), ActionRef::Continuous(&[3.0, 4.0]));
         s.truncate(1);
         assert_eq!(s.len(), 1);
-        let mut d = ActionSeq::empty(0);
+        let mut d = ActionSeq::empty(ActionSpace::Discrete { num_actions: 9 });
         d.push(ActionRef::Discrete(5));
         assert_eq!(d.get(0), ActionRef::Discrete(5));
     }

@@ -14,6 +14,8 @@ pub const DEFAULT_BETA: f64 = 0.8;
 pub const DEFAULT_GAMMA: f64 = 0.99;
 /// Default `max_trajectory_len`.
 pub const DEFAULT_MAX_TRAJECTORY_LEN: u32 = 100_000;
+/// Default `gate_potential` (v1.1).
+pub const DEFAULT_GATE_POTENTIAL: bool = false;
 
 /// The action space of a task.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -49,30 +51,146 @@ impl ActionSpace {
     }
 }
 
-/// A task configuration as a client sends it: `None` means "use the default".
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct TaskConfigInput {
-    /// Discrete action count, 0 if not discrete.
-    pub num_actions: u32,
-    /// Continuous action dimension, 0 if not continuous.
-    pub action_dim: u32,
-    /// |D|.
-    pub pool_capacity: Option<u32>,
-    /// Neighbours.
-    pub k: Option<u32>,
-    /// N.
-    pub start_step: Option<u32>,
-    /// Minimum pool size for the kNN term.
-    pub min_pool_size: Option<u32>,
-    /// α.
-    pub alpha: Option<f64>,
-    /// β.
-    pub beta: Option<f64>,
-    /// γ.
-    pub gamma: Option<f64>,
-    /// Cap on recorded actions per episode.
-    pub max_trajectory_len: Option<u32>,
+/// The optional fields of a task configuration (SPEC §1.1), each written once: calls
+/// `$m!` with the list `doc name: type, ... ; doc name: type, ...` (the fields of the first
+/// release; then the fields added since). Every per-field mapping (the input and
+/// resolved structs, the proto conversion, comparisons, the diff) is generated from it,
+/// and a test checks the list against the proto's `TaskConfig`.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! task_config_fields {
+    ($m:ident) => {
+        $m! {
+            /// |D|, the most trajectories the pool keeps, ≥ 1 [20].
+            pool_capacity: u32,
+            /// Neighbours of the kNN reward, 1 ≤ k ≤ pool_capacity [= pool_capacity].
+            k: u32,
+            /// N ≥ 0: the first step index at which the kNN term may be non-zero [10].
+            start_step: u32,
+            /// The kNN term is active only with at least this many trajectories,
+            /// 1 ≤ min_pool_size ≤ pool_capacity [= pool_capacity].
+            min_pool_size: u32,
+            /// α, the weight of the kNN term, finite [0.8].
+            alpha: f64,
+            /// β, the weight of the potential term, finite [0.8].
+            beta: f64,
+            /// γ of the potential term, 0 ≤ γ ≤ 1 [0.99].
+            gamma: f64,
+            /// Actions recorded per episode at most, ≥ 1 [100000].
+            max_trajectory_len: u32,
+            ;
+            // Fields added after the first release: stored data that lacks them reads
+            // them as their default.
+            /// (v1.1) F counts only on steps where the kNN term is active [false].
+            gate_potential: bool,
+        }
+    };
 }
+
+/// Bit-exact equality of configuration values (floats compared bit for bit, so that an
+/// idempotent `CreateTask` means exactly the same config).
+trait SameBits {
+    fn same_bits(&self, other: &Self) -> bool;
+}
+impl SameBits for u32 {
+    fn same_bits(&self, other: &Self) -> bool {
+        self == other
+    }
+}
+impl SameBits for bool {
+    fn same_bits(&self, other: &Self) -> bool {
+        self == other
+    }
+}
+impl SameBits for f64 {
+    fn same_bits(&self, other: &Self) -> bool {
+        self.to_bits() == other.to_bits()
+    }
+}
+
+macro_rules! define_config_structs {
+    ($($(#[doc = $doc:literal])* $name:ident : $ty:ty,)*
+     ; $($(#[doc = $ndoc:literal])* $new:ident : $nty:ty,)*) => {
+        /// A task configuration as a client sends it: `None` means "use the default".
+        #[derive(Debug, Clone, Default, PartialEq)]
+        pub struct TaskConfigInput {
+            /// Discrete action count n, 0 if not discrete.
+            pub num_actions: u32,
+            /// Continuous action dimension m, 0 if not continuous.
+            pub action_dim: u32,
+            $($(#[doc = $doc])* pub $name: Option<$ty>,)*
+            $($(#[doc = $ndoc])* pub $new: Option<$nty>,)*
+        }
+
+        /// A fully resolved, validated task configuration (every default filled in).
+        /// Stored as JSON by the disk store: a field added after the first release reads
+        /// as its default when missing, so older data stays readable.
+        #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+        pub struct TaskConfig {
+            /// Discrete or continuous actions.
+            pub action_space: ActionSpace,
+            $($(#[doc = $doc])* pub $name: $ty,)*
+            $($(#[doc = $ndoc])* #[serde(default)] pub $new: $nty,)*
+        }
+
+        impl TaskConfig {
+            /// Every `TaskConfig` field name of the proto, in field-number order.
+            pub const FIELD_NAMES: &'static [&'static str] =
+                &["num_actions", "action_dim", $(stringify!($name),)* $(stringify!($new),)*];
+
+            /// The resolved configuration as an input with every field set (round-trips
+            /// through [`TaskConfig::resolve`]).
+            pub fn to_input(&self) -> TaskConfigInput {
+                TaskConfigInput {
+                    num_actions: self.action_space.num_actions() as u32,
+                    action_dim: self.action_space.action_dim() as u32,
+                    $($name: Some(self.$name),)*
+                    $($new: Some(self.$new),)*
+                }
+            }
+
+            /// Whether two resolved configs are the same (floats compared bit for bit).
+            pub fn same_as(&self, other: &TaskConfig) -> bool {
+                self.action_space == other.action_space
+                    $(&& self.$name.same_bits(&other.$name))*
+                    $(&& self.$new.same_bits(&other.$new))*
+            }
+
+            /// The fields that differ, as `name: existing X, requested Y`, in the user's
+            /// terms (values, not Rust's `Option`s).
+            pub fn diff(&self, requested: &TaskConfig) -> Vec<String> {
+                let mut out = Vec::new();
+                let (a, b) = (self.action_space, requested.action_space);
+                if a.num_actions() != b.num_actions() {
+                    out.push(format!(
+                        "num_actions: existing {}, requested {}",
+                        a.num_actions(), b.num_actions()
+                    ));
+                }
+                if a.action_dim() != b.action_dim() {
+                    out.push(format!(
+                        "action_dim: existing {}, requested {}",
+                        a.action_dim(), b.action_dim()
+                    ));
+                }
+                $(if !self.$name.same_bits(&requested.$name) {
+                    out.push(format!(
+                        "{}: existing {}, requested {}",
+                        stringify!($name), self.$name, requested.$name
+                    ));
+                })*
+                $(if !self.$new.same_bits(&requested.$new) {
+                    out.push(format!(
+                        "{}: existing {}, requested {}",
+                        stringify!($new), self.$new, requested.$new
+                    ));
+                })*
+                out
+            }
+        }
+    };
+}
+task_config_fields!(define_config_structs);
 
 /// A configuration value outside its range. `field` is the `TaskConfig` field name.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -89,29 +207,6 @@ fn bad(field: &'static str, message: impl Into<String>) -> ConfigError {
         field,
         message: message.into(),
     }
-}
-
-/// A fully resolved, validated task configuration (every default filled in).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct TaskConfig {
-    /// Discrete or continuous actions.
-    pub action_space: ActionSpace,
-    /// |D| ≥ 1.
-    pub pool_capacity: u32,
-    /// 1 ≤ k ≤ pool_capacity.
-    pub k: u32,
-    /// N ≥ 0.
-    pub start_step: u32,
-    /// 1 ≤ min_pool_size ≤ pool_capacity.
-    pub min_pool_size: u32,
-    /// α, finite.
-    pub alpha: f64,
-    /// β, finite.
-    pub beta: f64,
-    /// 0 ≤ γ ≤ 1.
-    pub gamma: f64,
-    /// ≥ 1.
-    pub max_trajectory_len: u32,
 }
 
 impl TaskConfig {
@@ -179,37 +274,8 @@ impl TaskConfig {
             beta,
             gamma,
             max_trajectory_len,
+            gate_potential: input.gate_potential.unwrap_or(DEFAULT_GATE_POTENTIAL),
         })
-    }
-
-    /// The resolved configuration as an input with every field set (round-trips through
-    /// [`TaskConfig::resolve`]).
-    pub fn to_input(&self) -> TaskConfigInput {
-        TaskConfigInput {
-            num_actions: self.action_space.num_actions() as u32,
-            action_dim: self.action_space.action_dim() as u32,
-            pool_capacity: Some(self.pool_capacity),
-            k: Some(self.k),
-            start_step: Some(self.start_step),
-            min_pool_size: Some(self.min_pool_size),
-            alpha: Some(self.alpha),
-            beta: Some(self.beta),
-            gamma: Some(self.gamma),
-            max_trajectory_len: Some(self.max_trajectory_len),
-        }
-    }
-
-    /// Whether two resolved configs are the same (floats compared bit for bit).
-    pub fn same_as(&self, other: &TaskConfig) -> bool {
-        self.action_space == other.action_space
-            && self.pool_capacity == other.pool_capacity
-            && self.k == other.k
-            && self.start_step == other.start_step
-            && self.min_pool_size == other.min_pool_size
-            && self.alpha.to_bits() == other.alpha.to_bits()
-            && self.beta.to_bits() == other.beta.to_bits()
-            && self.gamma.to_bits() == other.gamma.to_bits()
-            && self.max_trajectory_len == other.max_trajectory_len
     }
 }
 
@@ -233,6 +299,7 @@ mod tests {
         assert_eq!(c.start_step, 10);
         assert_eq!((c.alpha, c.beta, c.gamma), (0.8, 0.8, 0.99));
         assert_eq!(c.max_trajectory_len, 100_000);
+        assert!(!c.gate_potential);
         let c = TaskConfig::resolve(&TaskConfigInput {
             pool_capacity: Some(7),
             ..discrete(2)
@@ -240,6 +307,38 @@ mod tests {
         .unwrap();
         assert_eq!((c.k, c.min_pool_size), (7, 7));
         assert_eq!(TaskConfig::resolve(&c.to_input()).unwrap(), c);
+    }
+
+    #[test]
+    fn same_as_and_diff_see_every_field() {
+        let base = TaskConfig::resolve(&discrete(4)).unwrap();
+        let mut other = base;
+        other.gate_potential = true;
+        other.alpha = 0.5;
+        assert!(!base.same_as(&other));
+        assert_eq!(
+            base.diff(&other),
+            vec![
+                "alpha: existing 0.8, requested 0.5".to_string(),
+                "gate_potential: existing false, requested true".to_string()
+            ]
+        );
+        // -0.0 and 0.0 are different configs (bit-exact idempotency).
+        let mut z = base;
+        z.beta = 0.0;
+        let mut nz = base;
+        nz.beta = -0.0;
+        assert!(!z.same_as(&nz));
+        assert!(base.same_as(&TaskConfig::resolve(&base.to_input()).unwrap()));
+    }
+
+    #[test]
+    fn older_stored_configs_read_gate_potential_as_false() {
+        let c = TaskConfig::resolve(&discrete(3)).unwrap();
+        let mut json = serde_json::to_value(c).unwrap();
+        json.as_object_mut().unwrap().remove("gate_potential");
+        let back: TaskConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(back, c);
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! the recorded prefix for new ones (O(t) once per new trajectory).
 
 use super::actions::{delta, ActionRef, ActionSeq};
-use super::config::TaskConfig;
+use super::config::{ActionSpace, TaskConfig};
 use super::knn::{knn_f, reward_from_f, KnnScratch};
 use super::pool::Pool;
 use super::potential::{potential, Values};
@@ -72,11 +72,11 @@ pub struct Episode {
 }
 
 impl Episode {
-    /// A fresh episode for a task whose actions have `action_dim` floats (0 = discrete).
-    pub fn new(action_dim: usize) -> Episode {
+    /// A fresh episode (t = 0) for a task with actions of `space`.
+    pub fn new(space: ActionSpace) -> Episode {
         Episode {
             t: 0,
-            recorded: ActionSeq::empty(action_dim),
+            recorded: ActionSeq::empty(space),
             reward_sum: 0.0,
             synced_version: None,
             seqs: Vec::new(),
@@ -161,7 +161,12 @@ impl Episode {
         } else {
             0.0
         };
-        let f = potential(input.values, cfg.gamma, input.terminated);
+        // With gate_potential (v1.1), F counts only where the kNN term does.
+        let f = if cfg.gate_potential && !active {
+            0.0
+        } else {
+            potential(input.values, cfg.gamma, input.terminated)
+        };
         let output = StepOutput {
             reward: input.reward + cfg.alpha * knn_reward + cfg.beta * f,
             knn_reward,

@@ -11,7 +11,7 @@ pub mod knn;
 pub mod pool;
 pub mod potential;
 
-pub use actions::{ActionRef, ActionSeq};
+pub use actions::{ActionCount, ActionError, ActionRef, ActionSeq};
 pub use config::{ActionSpace, ConfigError, TaskConfig, TaskConfigInput};
 pub use episode::{Episode, EpisodeEnd, StepInput, StepOutput};
 pub use knn::KnnScratch;

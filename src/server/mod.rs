@@ -37,6 +37,9 @@ pub enum StartError {
     /// The port file could not be written.
     #[error("cannot write port file: {0}")]
     PortFile(std::io::Error),
+    /// The reflection service could not be built from the embedded descriptors.
+    #[error("cannot build the reflection service: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
 }
 
 /// A running server.
@@ -55,11 +58,6 @@ impl RunningServer {
         self.addr
     }
 
-    /// The registry (for in-process inspection in tests).
-    pub fn registry(&self) -> &Arc<Registry> {
-        &self.registry
-    }
-
     /// Stops accepting, lets open streams finish the batch they are processing (they then
     /// end with UNAVAILABLE), waits up to the grace period, and persists counters.
     pub async fn shutdown(self) {
@@ -76,11 +74,7 @@ impl RunningServer {
         // are not destroyed by a TCP reset (see `linger`).
         self.closing.close();
         let _ = tokio::time::timeout(linger::LINGER, self.closing.wait()).await;
-        let registry = self.registry.clone();
-        let flush = move || registry.flush_counters();
-        if let Err(e) = tokio::task::spawn_blocking(flush).await {
-            tracing::error!(error = %e, "could not persist counters");
-        }
+        self.registry.flush_counters().await;
     }
 }
 
@@ -88,10 +82,10 @@ impl RunningServer {
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let store: Arc<dyn Store> = match &settings.data_dir {
         Some(dir) => Arc::new(DiskStore::open(dir)?),
-        None => Arc::new(MemoryStore),
+        None => Arc::new(MemoryStore::new()),
     };
     tracing::info!("{}", store.describe());
-    let (registry, restored) = Registry::open(store, settings.limits)?;
+    let (registry, restored) = Registry::open(store, settings.limits).await?;
     if restored.tasks > 0 {
         tracing::info!(
             tasks = restored.tasks,
@@ -100,6 +94,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         );
     }
     let registry = Arc::new(registry);
+    // Only a store shared with other servers announces changes.
+    let _watcher = registry.watch_changes();
 
     let listener = TcpListener::bind(settings.listen)
         .await
@@ -125,12 +121,9 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         b.register_encoded_file_descriptor_set(crate::proto::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
-    let reflection_v1 = reflection(tonic_reflection::server::Builder::configure())
-        .build_v1()
-        .map_err(|e| StartError::PortFile(std::io::Error::other(e.to_string())))?;
-    let reflection_v1alpha = reflection(tonic_reflection::server::Builder::configure())
-        .build_v1alpha()
-        .map_err(|e| StartError::PortFile(std::io::Error::other(e.to_string())))?;
+    let reflection_v1 = reflection(tonic_reflection::server::Builder::configure()).build_v1()?;
+    let reflection_v1alpha =
+        reflection(tonic_reflection::server::Builder::configure()).build_v1alpha()?;
 
     let stop = shutdown.clone();
     let reporter = health_reporter.clone();

@@ -1,66 +1,42 @@
-//! Mapping between protobuf messages and core types, with the validation of everything
-//! that is not a step batch (task ids, configs, trajectories).
+//! Mapping between protobuf messages and the library's types (configs, tasks, pools,
+//! trajectories, step batches and their answers). Validation lives in the layers below:
+//! this module only moves fields.
 
-use crate::core::{ActionSeq, ActionSpace, Pool, TaskConfig, TaskConfigInput, Trajectory};
+use crate::core::{ActionCount, ActionSeq, Pool, TaskConfig, TaskConfigInput, Trajectory};
 use crate::error::Error;
 use crate::proto;
 use crate::registry::TaskHandle;
+use crate::session::{Batch, Shaped};
 
-/// Task ids: 1–128 characters of `[A-Za-z0-9._:/-]`.
-pub fn validate_task_id(field: &str, id: &str) -> Result<(), Error> {
-    if id.is_empty() || id.len() > 128 {
-        return Err(Error::invalid(
-            field,
-            format!("task ids are 1-128 characters, got {}", id.len()),
-        ));
-    }
-    if let Some(c) = id
-        .chars()
-        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | ':' | '/' | '-')))
-    {
-        return Err(Error::invalid(
-            field,
-            format!("task ids use only [A-Za-z0-9._:/-], found {c:?}"),
-        ));
-    }
-    Ok(())
-}
+macro_rules! config_conversions {
+    ($($(#[doc = $doc:literal])* $name:ident : $ty:ty,)*
+     ; $($(#[doc = $ndoc:literal])* $new:ident : $nty:ty,)*) => {
+        /// The client's config with unset fields as `None`.
+        pub fn config_input(c: Option<&proto::TaskConfig>) -> TaskConfigInput {
+            let Some(c) = c else {
+                return TaskConfigInput::default();
+            };
+            TaskConfigInput {
+                num_actions: c.num_actions,
+                action_dim: c.action_dim,
+                $($name: c.$name,)*
+                $($new: c.$new,)*
+            }
+        }
 
-/// The client's config with unset fields as `None`.
-pub fn config_input(c: Option<&proto::TaskConfig>) -> TaskConfigInput {
-    let Some(c) = c else {
-        return TaskConfigInput::default();
+        /// A resolved config with every field set.
+        pub fn config_proto(c: &TaskConfig) -> proto::TaskConfig {
+            let i = c.to_input();
+            proto::TaskConfig {
+                num_actions: i.num_actions,
+                action_dim: i.action_dim,
+                $($name: i.$name,)*
+                $($new: i.$new,)*
+            }
+        }
     };
-    TaskConfigInput {
-        num_actions: c.num_actions,
-        action_dim: c.action_dim,
-        pool_capacity: c.pool_capacity,
-        k: c.k,
-        start_step: c.start_step,
-        min_pool_size: c.min_pool_size,
-        alpha: c.alpha,
-        beta: c.beta,
-        gamma: c.gamma,
-        max_trajectory_len: c.max_trajectory_len,
-    }
 }
-
-/// A resolved config with every field set.
-pub fn config_proto(c: &TaskConfig) -> proto::TaskConfig {
-    let i = c.to_input();
-    proto::TaskConfig {
-        num_actions: i.num_actions,
-        action_dim: i.action_dim,
-        pool_capacity: i.pool_capacity,
-        k: i.k,
-        start_step: i.start_step,
-        min_pool_size: i.min_pool_size,
-        alpha: i.alpha,
-        beta: i.beta,
-        gamma: i.gamma,
-        max_trajectory_len: i.max_trajectory_len,
-    }
-}
+crate::task_config_fields!(config_conversions);
 
 fn sat_u32(x: usize) -> u32 {
     u32::try_from(x).unwrap_or(u32::MAX)
@@ -125,64 +101,49 @@ pub fn trajectory_input(
             format!("must be finite, got {}", t.score),
         ));
     }
-    let mut actions = match config.action_space {
-        ActionSpace::Discrete { num_actions } => {
-            if !t.action_vectors.is_empty() {
-                return Err(Error::invalid(
-                    "trajectory.action_vectors",
-                    "must be empty for a discrete task (use actions)",
-                ));
-            }
-            if let Some((i, a)) = t
-                .actions
-                .iter()
-                .enumerate()
-                .find(|(_, &a)| a >= num_actions)
-            {
-                return Err(Error::invalid(
-                    format!("trajectory.actions[{i}]"),
-                    format!("action {a} out of range for num_actions {num_actions}"),
-                ));
-            }
-            ActionSeq::Discrete(t.actions)
-        }
-        ActionSpace::Continuous { action_dim } => {
-            if !t.actions.is_empty() {
-                return Err(Error::invalid(
-                    "trajectory.actions",
-                    "must be empty for a continuous task (use action_vectors)",
-                ));
-            }
-            let m = action_dim as usize;
-            if t.action_vectors.len() % m != 0 {
-                return Err(Error::invalid(
-                    "trajectory.action_vectors",
-                    format!(
-                        "length {} is not a multiple of action_dim {m}",
-                        t.action_vectors.len()
-                    ),
-                ));
-            }
-            if let Some(i) = t.action_vectors.iter().position(|x| !x.is_finite()) {
-                return Err(Error::invalid(
-                    format!("trajectory.action_vectors[{i}]"),
-                    format!("must be finite, got {}", t.action_vectors[i]),
-                ));
-            }
-            ActionSeq::Continuous {
-                dim: m,
-                data: t.action_vectors,
-            }
-        }
-    };
-    if actions.is_empty() {
-        return Err(Error::invalid(
-            "trajectory",
-            "must have at least one action",
-        ));
-    }
+    let mut actions = config
+        .action_space
+        .to_seq(t.actions, t.action_vectors, ActionCount::AtLeastOne)
+        .map_err(|e| Error::invalid(e.field("trajectory."), e.message))?;
     actions.truncate(config.max_trajectory_len as usize);
     Ok((actions, t.score))
+}
+
+/// A borrowed view of a `StepBatch` for the session layer. `scores` is scratch space
+/// for the episode-score map as `(entry, score)` pairs.
+pub fn batch_view<'a>(b: &'a proto::StepBatch, scores: &'a mut Vec<(u32, f64)>) -> Batch<'a> {
+    scores.clear();
+    scores.extend(b.episode_scores.iter().map(|(&i, &s)| (i, s)));
+    Batch {
+        env_ids: &b.env_ids,
+        actions: &b.actions,
+        action_vectors: &b.action_vectors,
+        rewards: &b.rewards,
+        terminated: &b.terminated,
+        truncated: &b.truncated,
+        values: &b.values,
+        next_values: &b.next_values,
+        q_values: &b.q_values,
+        next_q_values: &b.next_q_values,
+        episode_scores: scores,
+        abandon: &b.abandon,
+    }
+}
+
+/// The answer to one batch.
+pub fn shaped_proto(s: &Shaped<'_>) -> proto::ShapedBatch {
+    let o = s.outputs;
+    proto::ShapedBatch {
+        rewards: o.iter().map(|o| o.reward).collect(),
+        knn_rewards: o.iter().map(|o| o.knn_reward).collect(),
+        potentials: o.iter().map(|o| o.potential).collect(),
+        steps: o
+            .iter()
+            .map(|o| u32::try_from(o.step).unwrap_or(u32::MAX))
+            .collect(),
+        knn_active: o.iter().map(|o| o.knn_active).collect(),
+        pool_version: s.pool_version,
+    }
 }
 
 #[cfg(test)]
@@ -190,12 +151,24 @@ mod tests {
     use super::*;
 
     #[test]
-    fn task_ids() {
-        assert!(validate_task_id("t", "maze/v1:seed-0_a.b").is_ok());
-        assert!(validate_task_id("t", &"a".repeat(128)).is_ok());
-        assert!(validate_task_id("t", &"a".repeat(129)).is_err());
-        assert!(validate_task_id("t", "").is_err());
-        assert!(validate_task_id("t", "a b").is_err());
-        assert!(validate_task_id("t", "é").is_err());
+    fn every_task_config_field_maps_both_ways() {
+        let c = TaskConfig::resolve(&TaskConfigInput {
+            action_dim: 3,
+            pool_capacity: Some(9),
+            k: Some(2),
+            start_step: Some(4),
+            min_pool_size: Some(5),
+            alpha: Some(0.25),
+            beta: Some(-1.0),
+            gamma: Some(0.5),
+            max_trajectory_len: Some(77),
+            gate_potential: Some(true),
+            ..Default::default()
+        })
+        .unwrap();
+        let p = config_proto(&c);
+        assert_eq!(TaskConfig::resolve(&config_input(Some(&p))).unwrap(), c);
+        assert_eq!(p.gate_potential, Some(true));
+        assert_eq!(config_input(None), TaskConfigInput::default());
     }
 }

@@ -1,11 +1,10 @@
-//! The `tamrm.v1.Shaping` gRPC service: protocol mapping and validation only. The numbers
-//! come from [`crate::core`], state and locking from [`crate::registry`], and every error
-//! becomes a status in [`status`].
+//! The `tamrm.v1.Shaping` gRPC service: protocol mapping only. Streams are
+//! [`crate::session`]s, tasks and pools live in the [`crate::registry`], the numbers come
+//! from [`crate::core`], and every error becomes a status in [`status`].
 
 pub mod convert;
 pub mod status;
 mod stream;
-pub mod validate;
 
 use std::sync::Arc;
 
@@ -16,22 +15,9 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::error::Error;
 use crate::proto::shaping_server::Shaping;
 use crate::proto::{self};
-use crate::registry::Registry;
-use convert::{config_input, pool_proto, task_proto, trajectory_input, validate_task_id};
-
-/// Runs `f`, which may block (disk I/O, or long CPU work) when `blocks`, without stalling
-/// the async executor: on a multi-threaded runtime the current worker hands its other
-/// tasks off first.
-pub(crate) fn blocking<R>(blocks: bool, f: impl FnOnce() -> R) -> R {
-    let multi = tokio::runtime::Handle::try_current()
-        .map(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
-        .unwrap_or(false);
-    if blocks && multi {
-        tokio::task::block_in_place(f)
-    } else {
-        f()
-    }
-}
+use crate::registry::{Registry, TaskHandle};
+use crate::session::validate_task_id;
+use convert::{config_input, pool_proto, task_proto, trajectory_input};
 
 /// The Shaping service over a [`Registry`].
 #[derive(Clone)]
@@ -47,7 +33,7 @@ impl ShapingService {
         ShapingService { registry, shutdown }
     }
 
-    fn task(&self, id: &str) -> Result<Arc<crate::registry::TaskHandle>, Error> {
+    fn task(&self, id: &str) -> Result<Arc<TaskHandle>, Error> {
         validate_task_id("task_id", id)?;
         self.registry.get(id)
     }
@@ -63,10 +49,6 @@ impl ShapingService {
         }
         Ok(())
     }
-
-    fn durable(&self) -> bool {
-        self.registry.is_durable()
-    }
 }
 
 #[tonic::async_trait]
@@ -78,9 +60,7 @@ impl Shaping for ShapingService {
         let req = request.into_inner();
         validate_task_id("task_id", &req.task_id)?;
         let input = config_input(req.config.as_ref());
-        let task = blocking(self.durable(), || {
-            self.registry.create(&req.task_id, &input)
-        })?;
+        let task = self.registry.create(&req.task_id, &input).await?;
         tracing::info!(task = %req.task_id, config = ?task.config(), "task created (or already present)");
         Ok(Response::new(task_proto(&task)))
     }
@@ -109,7 +89,7 @@ impl Shaping for ShapingService {
     ) -> Result<Response<proto::DeleteTaskResponse>, Status> {
         let id = &request.get_ref().task_id;
         validate_task_id("task_id", id)?;
-        blocking(self.durable(), || self.registry.delete(id))?;
+        self.registry.delete(id).await?;
         tracing::info!(task = %id, "task deleted");
         Ok(Response::new(proto::DeleteTaskResponse {}))
     }
@@ -119,7 +99,7 @@ impl Shaping for ShapingService {
         request: Request<proto::ResetPoolRequest>,
     ) -> Result<Response<proto::Task>, Status> {
         let task = self.task(&request.get_ref().task_id)?;
-        let version = blocking(self.durable(), || task.reset_pool())?;
+        let version = task.reset_pool().await?;
         tracing::info!(task = %task.id(), pool_version = version, "pool reset");
         Ok(Response::new(task_proto(&task)))
     }
@@ -142,7 +122,7 @@ impl Shaping for ShapingService {
         let req = request.into_inner();
         let task = self.task(&req.task_id)?;
         let (actions, score) = trajectory_input(task.config(), req.trajectory)?;
-        let (inserted, pool_version) = blocking(self.durable(), || task.offer(actions, score))?;
+        let (inserted, pool_version) = task.offer(actions, score).await?;
         Ok(Response::new(proto::AddTrajectoryResponse {
             inserted,
             pool_version,

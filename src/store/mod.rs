@@ -1,21 +1,31 @@
-//! Where task configs and pools live, behind the small [`Store`] trait.
+//! Where task configs and pools live, behind the small async [`Store`] trait.
 //!
-//! The registry calls the store *before* it makes a change visible: a change that the
-//! store could not persist is never applied, so every change a response reports is on
-//! disk (for a durable store) when the response is sent. Calls for one task are
-//! serialised by the registry; streams keep shaping against the previous pool meanwhile.
+//! The registry asks the store to *commit* a pool change before it makes the change
+//! visible: a change the store did not acknowledge is never applied, so every change a
+//! response reports is durable (for a durable store) when the response is sent.
+//!
+//! A commit is conditional: it carries the operations of SPEC §6 ([`PoolOp`]: offer an
+//! episode, reset) and the version of the pool the caller planned against. The store
+//! applies the operations against *its* current pool and returns the resulting pool. A
+//! store that is the only writer of its pools (memory, disk) checks that the versions
+//! agree and reports [`StoreError::Conflict`] otherwise; a store shared by several
+//! servers (e.g. Redis) decides §6 atomically against the shared pool, and announces
+//! changes through [`Store::changes`] so that every server refreshes its snapshot.
 //!
 //! - [`MemoryStore`]: nothing is persisted; state is lost at exit.
 //! - [`DiskStore`]: one directory per task under a data dir; see `docs/storage.md`.
 
 mod disk;
 mod memory;
+#[cfg(test)]
+pub(crate) mod testing;
 
 use std::path::PathBuf;
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use crate::core::{Pool, TaskConfig};
+use crate::core::{ActionSeq, Pool, TaskConfig};
 
 pub use disk::{DiskStore, FORMAT_VERSION};
 pub use memory::MemoryStore;
@@ -43,49 +53,152 @@ pub struct StoredTask {
     pub counters: Counters,
 }
 
-/// A storage failure. `path` names the file or directory concerned.
+/// One pool operation of SPEC §6, decided by the store against its current pool.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PoolOp {
+    /// Offer a finished episode (or a seeded trajectory): insert while the pool is not
+    /// full, else replace the lowest score if this one is strictly greater, else discard.
+    Offer {
+        /// The recorded actions (non-empty).
+        actions: ActionSeq,
+        /// The episode score (finite).
+        score: f64,
+    },
+    /// Remove every trajectory.
+    Reset,
+}
+
+/// What a commit did.
+#[derive(Debug, Clone)]
+pub struct Committed {
+    /// The pool after the commit (with its new version).
+    pub pool: Arc<Pool>,
+    /// Per operation, in order: whether it changed the pool.
+    pub changed: Vec<bool>,
+}
+
+/// A pool changed in the store (by this server or another one).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PoolChanged {
+    /// The task id.
+    pub task: String,
+    /// The pool version after the change.
+    pub version: u64,
+}
+
+/// A storage failure.
 #[derive(Debug, thiserror::Error)]
-#[error("{}: {message}", path.display())]
-pub struct StoreError {
-    /// The file or directory concerned.
-    pub path: PathBuf,
-    /// What went wrong.
-    pub message: String,
+pub enum StoreError {
+    /// Reading or writing failed; `path` names the file, directory or key concerned.
+    #[error("{}: {message}", path.display())]
+    Io {
+        /// The file, directory or key concerned.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// The pool changed since the version a conditional commit was planned against.
+    #[error("task {task:?}: the pool is at version {found}, the commit expected {expected}")]
+    Conflict {
+        /// The task id.
+        task: String,
+        /// The version the commit was planned against.
+        expected: u64,
+        /// The store's version.
+        found: u64,
+    },
 }
 
 impl StoreError {
     pub(crate) fn new(path: impl Into<PathBuf>, message: impl std::fmt::Display) -> StoreError {
-        StoreError {
+        StoreError::Io {
             path: path.into(),
             message: message.to_string(),
         }
     }
 }
 
-/// Persistence of task configs and pools. Implementations are called with the task's pool
-/// write lock held, so calls for one task never overlap; calls for different tasks may.
+/// Applies `ops` in order to a copy of `base` (SPEC §6), as a store that owns its pools
+/// does. Returns the new pool and, per op, whether it changed the pool.
+pub fn apply_ops(base: &Pool, ops: Vec<PoolOp>) -> (Pool, Vec<bool>) {
+    let mut pool = base.clone();
+    let changed = ops
+        .into_iter()
+        .map(|op| {
+            let change = match op {
+                PoolOp::Offer { actions, score } => pool.plan_offer(actions, score),
+                PoolOp::Reset => Some(pool.plan_reset()),
+            };
+            change.map(|c| pool.apply(&c)).is_some()
+        })
+        .collect();
+    (pool, changed)
+}
+
+/// Persistence of task configs and pools. Calls for one task are serialised by the
+/// registry (commits of one task never overlap on one server); calls for different tasks
+/// may run at once. Every method may do I/O and is async: blocking implementations move
+/// their work off the async executor themselves.
+#[async_trait::async_trait]
 pub trait Store: Send + Sync + 'static {
     /// One line saying where state lives, for the start-up log.
     fn describe(&self) -> String;
-    /// Whether calls do blocking disk I/O (the server then keeps them off the async
-    /// executor's threads).
-    fn is_durable(&self) -> bool;
     /// Every stored task. Fails, naming the file, on anything corrupt or truncated.
-    fn load(&self) -> Result<Vec<StoredTask>, StoreError>;
+    async fn load(&self) -> Result<Vec<StoredTask>, StoreError>;
     /// Persists a new task with an empty pool.
-    fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError>;
+    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError>;
     /// Removes a task and its pool.
-    fn delete_task(&self, id: &str) -> Result<(), StoreError>;
-    /// Persists the pool going from `before` (the last committed state) to `after`: one or
-    /// more inserts/replacements, or a reset. Trajectories are immutable and identified by
-    /// seq, so the difference of the two seq sets says what to write and what to remove.
-    fn commit(
+    async fn delete_task(&self, id: &str) -> Result<(), StoreError>;
+    /// Applies `ops` against the store's current pool of `id`, atomically, and persists
+    /// the result with `counters`. `base` is the pool the caller planned against; a store
+    /// whose pool has another version fails with [`StoreError::Conflict`] (a store shared
+    /// by several servers decides against the shared pool instead). Nothing is changed on
+    /// error.
+    async fn commit(
         &self,
         id: &str,
-        before: &Pool,
-        after: &Pool,
+        base: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<Committed, StoreError>;
+    /// Persists the counters without a pool change.
+    async fn save_counters(
+        &self,
+        id: &str,
+        pool: Arc<Pool>,
         counters: Counters,
     ) -> Result<(), StoreError>;
-    /// Persists the counters (and the pool manifest they live in) without a pool change.
-    fn save_counters(&self, id: &str, pool: &Pool, counters: Counters) -> Result<(), StoreError>;
+    /// The store's current pool of `id` (for a server refreshing its snapshot after a
+    /// change elsewhere). Stores that are the only writer of their pools need not
+    /// implement it.
+    async fn load_pool(&self, id: &str) -> Result<Option<Pool>, StoreError> {
+        let _ = id;
+        Ok(None)
+    }
+    /// Notifications of pool changes made through this store by any server, for stores
+    /// shared by several servers; `None` for a store only this server writes.
+    fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn apply_ops_follows_the_update_rule_in_order() {
+        let base = Pool::new(1);
+        let offer = |score| PoolOp::Offer {
+            actions: ActionSeq::Discrete(vec![0]),
+            score,
+        };
+        let (pool, changed) = apply_ops(&base, vec![offer(1.0), offer(1.0), offer(2.0)]);
+        assert_eq!(changed, vec![true, false, true]);
+        assert_eq!(pool.version(), 2);
+        assert_eq!(pool.seqs(), &[2]);
+        let (pool, changed) = apply_ops(&pool, vec![PoolOp::Reset]);
+        assert_eq!((changed, pool.len(), pool.version()), (vec![true], 0, 3));
+        assert_eq!(base.version(), 0, "the base is not touched");
+    }
 }

@@ -1,0 +1,81 @@
+//! The server's limits, each declared once: its name, type, default and documentation
+//! generate [`Limits`] (the resolved values), [`LimitsLayer`] (one settings layer: the
+//! config file's `[limits]` table, or the flags and environment variables of
+//! `tamrm serve`) and the layering between them. Requests past a limit are answered
+//! `RESOURCE_EXHAUSTED`.
+
+use serde::{Deserialize, Serialize};
+
+macro_rules! limits {
+    ($($(#[doc = $doc:literal])* $name:ident : $ty:ty = $default:expr, env $env:literal;)*) => {
+        /// Server limits (resolved).
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+        pub struct Limits {
+            $($(#[doc = $doc])* pub $name: $ty,)*
+        }
+
+        impl Default for Limits {
+            fn default() -> Limits {
+                Limits { $($name: $default,)* }
+            }
+        }
+
+        /// One layer of limit settings: every limit optional. The same struct is the
+        /// config file's `[limits]` table (serde) and the flags and environment variables
+        /// of `tamrm serve` (clap).
+        #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize, clap::Args)]
+        #[serde(deny_unknown_fields)]
+        pub struct LimitsLayer {
+            $(
+                $(#[doc = $doc])*
+                #[arg(long, env = $env)]
+                pub $name: Option<$ty>,
+            )*
+        }
+
+        impl Limits {
+            /// Every limit's name, for the docs test and error messages.
+            pub const NAMES: &'static [&'static str] = &[$(stringify!($name)),*];
+
+            /// Overlays the limits `layer` sets.
+            pub fn apply(&mut self, layer: &LimitsLayer) {
+                $(if let Some(v) = layer.$name {
+                    self.$name = v;
+                })*
+            }
+        }
+    };
+}
+
+limits! {
+    /// Tasks the server holds at most [default: 10000].
+    max_tasks: usize = 10_000, env "TAMRM_MAX_TASKS";
+    /// Environments (`num_envs`) of one Shape stream at most [default: 4096].
+    max_envs_per_stream: u32 = 4_096, env "TAMRM_MAX_ENVS_PER_STREAM";
+    /// Entries of one StepBatch at most [default: 65536].
+    max_batch_entries: usize = 65_536, env "TAMRM_MAX_BATCH_ENTRIES";
+    /// Size of one gRPC message at most, in bytes, either direction [default: 67108864].
+    max_message_bytes: usize = 64 * 1024 * 1024, env "TAMRM_MAX_MESSAGE_BYTES";
+    /// `pool_capacity` a task may ask for at most [default: 10000].
+    max_pool_capacity: u32 = 10_000, env "TAMRM_MAX_POOL_CAPACITY";
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_layer_overrides_only_what_it_sets() {
+        let mut l = Limits::default();
+        l.apply(&LimitsLayer {
+            max_tasks: Some(3),
+            ..Default::default()
+        });
+        assert_eq!(l.max_tasks, 3);
+        assert_eq!(l.max_batch_entries, Limits::default().max_batch_entries);
+        let file: LimitsLayer = toml::from_str("max_pool_capacity = 7").unwrap();
+        l.apply(&file);
+        assert_eq!((l.max_tasks, l.max_pool_capacity), (3, 7));
+        assert!(toml::from_str::<LimitsLayer>("max_taks = 1").is_err());
+    }
+}

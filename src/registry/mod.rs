@@ -1,0 +1,191 @@
+//! Every task of a server: creation (idempotent), lookup, listing, deletion, limits, and
+//! the refresh of pool snapshots from a store shared with other servers.
+//!
+//! Locking: the task map is a `DashMap` (sharded; lookups never wait on other tasks).
+//! Create and delete are serialised by one admin lock, which the step path never touches.
+//! Per-task locking is described in [`task`].
+
+mod task;
+
+use std::sync::Arc;
+
+use dashmap::DashMap;
+use tokio::sync::Mutex;
+
+pub use task::{StreamGuard, TaskHandle, TaskStats, Writer};
+
+use crate::core::{Pool, TaskConfig, TaskConfigInput};
+use crate::error::Error;
+use crate::limits::Limits;
+use crate::store::{Counters, Store, StoreError};
+
+/// Every task of the server.
+pub struct Registry {
+    tasks: DashMap<String, Arc<TaskHandle>>,
+    admin: Mutex<()>,
+    store: Arc<dyn Store>,
+    limits: Limits,
+}
+
+/// What [`Registry::open`] restored.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Restored {
+    /// Tasks restored.
+    pub tasks: usize,
+    /// Trajectories restored over all pools.
+    pub trajectories: usize,
+}
+
+impl Registry {
+    /// Loads every task of `store`.
+    pub async fn open(
+        store: Arc<dyn Store>,
+        limits: Limits,
+    ) -> Result<(Registry, Restored), StoreError> {
+        let tasks = DashMap::new();
+        let mut restored = Restored::default();
+        for t in store.load().await? {
+            restored.tasks += 1;
+            restored.trajectories += t.pool.len();
+            let handle = TaskHandle::new(t.id.clone(), t.config, t.pool, t.counters, store.clone());
+            tasks.insert(t.id, Arc::new(handle));
+        }
+        Ok((
+            Registry {
+                tasks,
+                admin: Mutex::new(()),
+                store,
+                limits,
+            },
+            restored,
+        ))
+    }
+
+    /// The server limits.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// The store's one-line description, for the start-up log.
+    pub fn describe_store(&self) -> String {
+        self.store.describe()
+    }
+
+    /// Creates a task, or returns the existing one if its resolved config is the same.
+    pub async fn create(
+        &self,
+        id: &str,
+        input: &TaskConfigInput,
+    ) -> Result<Arc<TaskHandle>, Error> {
+        let config = TaskConfig::resolve(input)
+            .map_err(|e| Error::invalid(format!("config.{}", e.field), e.message))?;
+        let _admin = self.admin.lock().await;
+        if let Some(existing) = self.tasks.get(id) {
+            return if existing.config().same_as(&config) {
+                Ok(existing.clone())
+            } else {
+                Err(Error::AlreadyExists {
+                    id: id.to_string(),
+                    detail: existing.config().diff(&config).join("; "),
+                })
+            };
+        }
+        if config.pool_capacity > self.limits.max_pool_capacity {
+            return Err(Error::ResourceExhausted(format!(
+                "config.pool_capacity: {} exceeds this server's limit max_pool_capacity = {}",
+                config.pool_capacity, self.limits.max_pool_capacity
+            )));
+        }
+        if self.tasks.len() >= self.limits.max_tasks {
+            return Err(Error::ResourceExhausted(format!(
+                "task limit reached: this server holds at most max_tasks = {} tasks",
+                self.limits.max_tasks
+            )));
+        }
+        self.store.create_task(id, &config).await?;
+        let handle = Arc::new(TaskHandle::new(
+            id.to_string(),
+            config,
+            Pool::new(config.pool_capacity as usize),
+            Counters::default(),
+            self.store.clone(),
+        ));
+        self.tasks.insert(id.to_string(), handle.clone());
+        Ok(handle)
+    }
+
+    /// Looks a task up.
+    pub fn get(&self, id: &str) -> Result<Arc<TaskHandle>, Error> {
+        self.tasks
+            .get(id)
+            .map(|t| t.clone())
+            .ok_or_else(|| Error::TaskNotFound(id.to_string()))
+    }
+
+    /// Every task, ordered by id.
+    pub fn list(&self) -> Vec<Arc<TaskHandle>> {
+        let mut v: Vec<_> = self.tasks.iter().map(|e| e.value().clone()).collect();
+        v.sort_by(|a, b| a.id().cmp(b.id()));
+        v
+    }
+
+    /// Deletes a task; its open streams fail with NOT_FOUND at their next batch.
+    pub async fn delete(&self, id: &str) -> Result<(), Error> {
+        let _admin = self.admin.lock().await;
+        let handle = self.get(id)?;
+        let _writer = handle.lock_for_delete().await;
+        self.store.delete_task(id).await?;
+        handle.mark_deleted();
+        self.tasks.remove(id);
+        Ok(())
+    }
+
+    /// Persists every task's counters (at graceful shutdown).
+    pub async fn flush_counters(&self) {
+        for task in self.list() {
+            if let Err(e) = task.flush_counters().await {
+                tracing::warn!(task = task.id(), error = %e, "could not persist counters");
+            }
+        }
+    }
+
+    /// For a store shared with other servers: refreshes this server's snapshot of a pool
+    /// whenever the store announces a newer version. Returns `None` (and does nothing)
+    /// for a store only this server writes. Runs until the store's notifications end.
+    pub fn watch_changes(self: &Arc<Self>) -> Option<tokio::task::JoinHandle<()>> {
+        let mut changes = self.store.changes()?;
+        let registry = Arc::downgrade(self);
+        Some(tokio::spawn(async move {
+            use tokio::sync::broadcast::error::RecvError;
+            loop {
+                let change = match changes.recv().await {
+                    Ok(c) => c,
+                    Err(RecvError::Lagged(n)) => {
+                        tracing::warn!(missed = n, "missed pool change notifications");
+                        continue;
+                    }
+                    Err(RecvError::Closed) => return,
+                };
+                let Some(registry) = registry.upgrade() else {
+                    return;
+                };
+                let Ok(task) = registry.get(&change.task) else {
+                    continue;
+                };
+                if change.version <= task.published_version() {
+                    continue;
+                }
+                match registry.store.load_pool(&change.task).await {
+                    Ok(Some(pool)) => task.refresh(pool),
+                    Ok(None) => {}
+                    Err(e) => {
+                        tracing::warn!(task = %change.task, error = %e, "could not refresh a pool")
+                    }
+                }
+            }
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,260 @@
+//! One task: its immutable config, its published pool, its counters, and the serialised
+//! path by which its pool changes.
+//!
+//! The pool is published as an `Arc<Pool>` behind a `RwLock` that is only ever held for
+//! a pointer copy or swap: the step path takes a snapshot and shapes without any lock,
+//! and notices a newer pool with one atomic load. Pool changes of one task are
+//! serialised by its writer lock: the writer plans against the latest pool, the store
+//! commits (fsync, or the shared store's atomic update), then the result is published.
+//! Readers keep shaping against the previous pool meanwhile.
+
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::Arc;
+
+use parking_lot::RwLock;
+use tokio::sync::{Mutex, OwnedMutexGuard};
+
+use crate::core::{ActionSeq, Pool, TaskConfig};
+use crate::error::Error;
+use crate::store::{Committed, Counters, PoolOp, Store, StoreError};
+
+/// Live statistics of a task (the proto's `TaskStats`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TaskStats {
+    /// Trajectories in the pool.
+    pub pool_size: usize,
+    /// Pool version.
+    pub pool_version: u64,
+    /// L_min, 0 if empty.
+    pub min_length: usize,
+    /// Highest stored score, 0 if empty.
+    pub best_score: f64,
+    /// Lowest stored score, 0 if empty.
+    pub worst_score: f64,
+    /// Episodes ended by streams.
+    pub episodes_completed: u64,
+    /// Entries shaped.
+    pub steps_shaped: u64,
+    /// Open Shape streams.
+    pub open_streams: u32,
+}
+
+/// One task of the registry.
+pub struct TaskHandle {
+    id: String,
+    config: TaskConfig,
+    /// The published pool; the lock is held only to copy or swap the `Arc`.
+    pool: RwLock<Arc<Pool>>,
+    /// Serialises pool changes (and deletion) of this task.
+    writer: Arc<Mutex<()>>,
+    /// Version of the published pool, so the step path can notice a change with one load.
+    published: AtomicU64,
+    deleted: AtomicBool,
+    episodes_completed: AtomicU64,
+    steps_shaped: AtomicU64,
+    open_streams: AtomicU32,
+    store: Arc<dyn Store>,
+}
+
+/// Decrements a task's open-stream count when dropped.
+pub struct StreamGuard(Arc<TaskHandle>);
+
+impl Drop for StreamGuard {
+    fn drop(&mut self) {
+        self.0.open_streams.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+/// The right to change a task's pool, with the pool to plan against (the latest).
+pub struct Writer {
+    _guard: OwnedMutexGuard<()>,
+    base: Arc<Pool>,
+}
+
+impl Writer {
+    /// The pool the change is planned against: the latest published one.
+    pub fn base(&self) -> &Arc<Pool> {
+        &self.base
+    }
+}
+
+impl TaskHandle {
+    pub(super) fn new(
+        id: String,
+        config: TaskConfig,
+        pool: Pool,
+        counters: Counters,
+        store: Arc<dyn Store>,
+    ) -> Self {
+        TaskHandle {
+            id,
+            config,
+            published: AtomicU64::new(pool.version()),
+            pool: RwLock::new(Arc::new(pool)),
+            writer: Arc::new(Mutex::new(())),
+            deleted: AtomicBool::new(false),
+            episodes_completed: AtomicU64::new(counters.episodes_completed),
+            steps_shaped: AtomicU64::new(counters.steps_shaped),
+            open_streams: AtomicU32::new(0),
+            store,
+        }
+    }
+
+    /// The task id.
+    pub fn id(&self) -> &str {
+        &self.id
+    }
+
+    /// The resolved configuration.
+    pub fn config(&self) -> &TaskConfig {
+        &self.config
+    }
+
+    fn counters(&self) -> Counters {
+        Counters {
+            episodes_completed: self.episodes_completed.load(Ordering::Relaxed),
+            steps_shaped: self.steps_shaped.load(Ordering::Relaxed),
+        }
+    }
+
+    /// `NOT_FOUND` once the task was deleted.
+    pub fn check_live(&self) -> Result<(), Error> {
+        if self.deleted.load(Ordering::Acquire) {
+            Err(Error::TaskNotFound(self.id.clone()))
+        } else {
+            Ok(())
+        }
+    }
+
+    pub(super) fn mark_deleted(&self) {
+        self.deleted.store(true, Ordering::Release);
+    }
+
+    /// The published pool (a pointer copy).
+    pub fn snapshot(&self) -> Arc<Pool> {
+        self.pool.read().clone()
+    }
+
+    /// The version of the published pool (one atomic load).
+    pub fn published_version(&self) -> u64 {
+        self.published.load(Ordering::Acquire)
+    }
+
+    /// Live statistics.
+    pub fn stats(&self) -> TaskStats {
+        let pool = self.snapshot();
+        let (worst, best) = pool.score_range().unwrap_or((0.0, 0.0));
+        TaskStats {
+            pool_size: pool.len(),
+            pool_version: pool.version(),
+            min_length: pool.l_min(),
+            best_score: best,
+            worst_score: worst,
+            episodes_completed: self.episodes_completed.load(Ordering::Relaxed),
+            steps_shaped: self.steps_shaped.load(Ordering::Relaxed),
+            open_streams: self.open_streams.load(Ordering::Relaxed),
+        }
+    }
+
+    /// A consistent copy of the pool (cheap: trajectories are shared).
+    pub fn pool_snapshot(&self) -> Result<Arc<Pool>, Error> {
+        self.check_live()?;
+        Ok(self.snapshot())
+    }
+
+    /// Registers an open stream; the count drops when the guard does.
+    pub fn open_stream(self: &Arc<Self>) -> Result<StreamGuard, Error> {
+        self.check_live()?;
+        self.open_streams.fetch_add(1, Ordering::Relaxed);
+        Ok(StreamGuard(self.clone()))
+    }
+
+    /// Counts shaped entries.
+    pub fn count_steps(&self, n: usize) {
+        self.steps_shaped.fetch_add(n as u64, Ordering::Relaxed);
+    }
+
+    /// Counts an ended episode.
+    pub fn count_episode(&self) {
+        self.episodes_completed.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Waits for the right to change the pool.
+    pub async fn writer(&self) -> Result<Writer, Error> {
+        let guard = self.writer.clone().lock_owned().await;
+        self.check_live()?;
+        Ok(Writer {
+            _guard: guard,
+            base: self.snapshot(),
+        })
+    }
+
+    fn publish(&self, pool: Arc<Pool>) {
+        let version = pool.version();
+        let mut slot = self.pool.write();
+        // A refresh from a shared store may race a commit's publish: never go back.
+        if version >= slot.version() {
+            *slot = pool;
+            self.published.store(version, Ordering::Release);
+        }
+    }
+
+    /// Commits `ops` (planned against `writer.base()`) to the store, then publishes the
+    /// pool the store returns. Nothing is published if the store fails.
+    pub async fn commit(&self, writer: Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
+        if ops.is_empty() {
+            return Ok(Committed {
+                pool: writer.base.clone(),
+                changed: Vec::new(),
+            });
+        }
+        let committed = self
+            .store
+            .commit(&self.id, writer.base.clone(), ops, self.counters())
+            .await?;
+        self.publish(committed.pool.clone());
+        Ok(committed)
+    }
+
+    /// Publishes a newer pool learnt from the store (a change made by another server).
+    pub fn refresh(&self, pool: Pool) {
+        self.publish(Arc::new(pool));
+    }
+
+    /// Offers a trajectory (SPEC §6). Returns whether it was stored, and the version after.
+    pub async fn offer(&self, actions: ActionSeq, score: f64) -> Result<(bool, u64), Error> {
+        let writer = self.writer().await?;
+        let c = self
+            .commit(writer, vec![PoolOp::Offer { actions, score }])
+            .await?;
+        Ok((
+            c.changed.first().copied().unwrap_or(false),
+            c.pool.version(),
+        ))
+    }
+
+    /// Empties the pool (bumping its version). Returns the version after.
+    pub async fn reset_pool(&self) -> Result<u64, Error> {
+        let writer = self.writer().await?;
+        Ok(self
+            .commit(writer, vec![PoolOp::Reset])
+            .await?
+            .pool
+            .version())
+    }
+
+    /// Persists the counters (at shutdown).
+    pub async fn flush_counters(&self) -> Result<(), StoreError> {
+        let _writer = self.writer.clone().lock_owned().await;
+        if self.deleted.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        self.store
+            .save_counters(&self.id, self.snapshot(), self.counters())
+            .await
+    }
+
+    pub(super) async fn lock_for_delete(&self) -> OwnedMutexGuard<()> {
+        self.writer.clone().lock_owned().await
+    }
+}

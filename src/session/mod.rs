@@ -1,0 +1,230 @@
+//! The transport-free session layer: one stream of a learner's vector environment on one
+//! task, with each environment's episode state, the scratch buffers of the step path, and
+//! the commit policy at episode end.
+//!
+//! A transport (the gRPC `Shape` stream, the embedded Python engine, ...) opens a
+//! [`StreamSession`], feeds it [`Batch`]es and sends back the [`Shaped`] answers; it never
+//! touches episodes, pools or the store itself.
+//!
+//! The step path of one batch: validate the whole batch ([`Batch::validate`]); drop the
+//! abandoned episodes; shape entries in order against the task's published pool (no lock;
+//! a change published by another stream is seen from the next entry on); at the first
+//! episode end take the task's writer lock and from then on plan every episode end of the
+//! batch against a private copy of the latest pool, so that later entries of the batch see
+//! it; at the end of the batch commit the planned operations to the store in one conditional
+//! commit and publish the pool it returns.
+
+mod batch;
+
+use std::sync::Arc;
+
+pub use batch::{Batch, Entries};
+
+use crate::core::{Episode, KnnScratch, Pool, StepInput, StepOutput};
+use crate::error::Error;
+use crate::limits::Limits;
+use crate::registry::{Registry, StreamGuard, TaskHandle, Writer};
+use crate::store::PoolOp;
+
+/// Entries × pool capacity above which shaping a batch counts as long CPU work (about a
+/// millisecond), which a multi-threaded async runtime should not run on a worker thread.
+pub const HEAVY_BATCH_WORK: usize = 1 << 20;
+
+/// What opens a session (the proto's `Open`).
+#[derive(Debug, Clone, Copy)]
+pub struct OpenRequest<'a> {
+    /// The task to shape on.
+    pub task_id: &'a str,
+    /// Environments of the stream, numbered `0..num_envs`.
+    pub num_envs: u32,
+}
+
+/// The answer to one batch: one output per entry, in request order, and the task's pool
+/// version after the batch.
+#[derive(Debug, Clone, Copy)]
+pub struct Shaped<'s> {
+    /// Per entry: R_meta and its parts.
+    pub outputs: &'s [StepOutput],
+    /// The pool version after the batch.
+    pub pool_version: u64,
+}
+
+/// One open stream on one task.
+pub struct StreamSession {
+    task: Arc<TaskHandle>,
+    _guard: StreamGuard,
+    limits: Limits,
+    episodes: Vec<Episode>,
+    scratch: KnnScratch,
+    outputs: Vec<StepOutput>,
+}
+
+/// Task ids: 1–128 characters of `[A-Za-z0-9._:/-]`.
+pub fn validate_task_id(field: &str, id: &str) -> Result<(), Error> {
+    if id.is_empty() || id.len() > 128 {
+        return Err(Error::invalid(
+            field,
+            format!("task ids are 1-128 characters, got {}", id.len()),
+        ));
+    }
+    if let Some(c) = id
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | ':' | '/' | '-')))
+    {
+        return Err(Error::invalid(
+            field,
+            format!("task ids use only [A-Za-z0-9._:/-], found {c:?}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Runs CPU work that may take long without stalling a multi-threaded async runtime:
+/// the current worker hands its other tasks off first. Inline elsewhere.
+fn cpu<R>(long: bool, f: impl FnOnce() -> R) -> R {
+    let multi = tokio::runtime::Handle::try_current()
+        .map(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread)
+        .unwrap_or(false);
+    if long && multi {
+        tokio::task::block_in_place(f)
+    } else {
+        f()
+    }
+}
+
+/// Where a run of lock-free shaping stopped.
+enum Stop {
+    /// Every entry is shaped.
+    Done,
+    /// Entry `i` ended an episode; its trajectory is to be offered to the pool.
+    EpisodeEnd(usize, crate::core::EpisodeEnd),
+}
+
+impl StreamSession {
+    /// Opens a session on `req.task_id` (SPEC §7: `Open`).
+    pub fn open(registry: &Registry, req: &OpenRequest<'_>) -> Result<StreamSession, Error> {
+        validate_task_id("open.task_id", req.task_id)?;
+        if req.num_envs == 0 {
+            return Err(Error::invalid("open.num_envs", "must be >= 1"));
+        }
+        let max = registry.limits().max_envs_per_stream;
+        if req.num_envs > max {
+            return Err(Error::ResourceExhausted(format!(
+                "open.num_envs: {} exceeds this server's limit max_envs_per_stream = {max}",
+                req.num_envs
+            )));
+        }
+        let task = registry.get(req.task_id)?;
+        let guard = task.open_stream()?;
+        let space = task.config().action_space;
+        Ok(StreamSession {
+            episodes: (0..req.num_envs).map(|_| Episode::new(space)).collect(),
+            task,
+            _guard: guard,
+            limits: *registry.limits(),
+            scratch: KnnScratch::default(),
+            outputs: Vec::new(),
+        })
+    }
+
+    /// The task this session shapes on.
+    pub fn task(&self) -> &Arc<TaskHandle> {
+        &self.task
+    }
+
+    /// Environments of the session.
+    pub fn num_envs(&self) -> usize {
+        self.episodes.len()
+    }
+
+    /// Drops the current episodes of `envs` without updating the pool (SPEC §12); their
+    /// next steps start new episodes at t = 0. Each id must be `< num_envs`, none twice.
+    pub fn abandon(&mut self, envs: &[u32]) -> Result<(), Error> {
+        batch::check_env_list("abandon", envs, self.num_envs())?;
+        self.drop_episodes(envs);
+        Ok(())
+    }
+
+    fn drop_episodes(&mut self, envs: &[u32]) {
+        let space = self.task.config().action_space;
+        for &e in envs {
+            self.episodes[e as usize] = Episode::new(space);
+        }
+    }
+
+    /// Validates and shapes one batch (SPEC §2–§6, §12). A rejected batch changes
+    /// nothing; a batch that fails in the store changes no pool.
+    pub async fn step(&mut self, batch: &Batch<'_>) -> Result<Shaped<'_>, Error> {
+        let config = *self.task.config();
+        let entries = batch.validate(&config, self.num_envs(), &self.limits)?;
+        self.task.check_live()?;
+        self.drop_episodes(batch.abandon);
+        self.outputs.clear();
+        let long = entries.len().saturating_mul(config.pool_capacity as usize) > HEAVY_BATCH_WORK;
+
+        let mut pool = self.task.snapshot();
+        let mut writer: Option<Writer> = None;
+        let mut ops = Vec::new();
+        let mut next = 0;
+        loop {
+            let stop = cpu(long, || {
+                self.shape_run(&entries[next..], next, &mut pool, writer.is_some())
+            });
+            let (i, end) = match stop {
+                Stop::Done => break,
+                Stop::EpisodeEnd(i, end) => (i, end),
+            };
+            next = i + 1;
+            self.task.count_episode();
+            if writer.is_none() {
+                // Plan this and every later episode end of the batch against the latest
+                // pool, privately, while holding the task's writer lock.
+                let w = self.task.writer().await?;
+                pool = w.base().clone();
+                writer = Some(w);
+            }
+            if let Some(change) = pool.plan_offer(end.actions.clone(), end.score) {
+                Arc::make_mut(&mut pool).apply(&change);
+            }
+            ops.push(PoolOp::Offer {
+                actions: end.actions,
+                score: end.score,
+            });
+        }
+        self.task.count_steps(entries.len());
+        if let Some(w) = writer {
+            pool = self.task.commit(w, ops).await?.pool;
+        }
+        Ok(Shaped {
+            outputs: &self.outputs,
+            pool_version: pool.version(),
+        })
+    }
+
+    /// Shapes `entries` (which start at batch index `offset`) in order until one ends an
+    /// episode. Without the writer lock, each entry sees the latest published pool.
+    fn shape_run(
+        &mut self,
+        entries: &[(usize, StepInput<'_>)],
+        offset: usize,
+        pool: &mut Arc<Pool>,
+        writing: bool,
+    ) -> Stop {
+        let config = self.task.config();
+        for (j, (env, input)) in entries.iter().enumerate() {
+            if !writing && self.task.published_version() != pool.version() {
+                // Another stream committed a change: this step sees it.
+                *pool = self.task.snapshot();
+            }
+            let (output, end) = self.episodes[*env].step(config, pool, input, &mut self.scratch);
+            self.outputs.push(output);
+            if let Some(end) = end {
+                return Stop::EpisodeEnd(offset + j, end);
+            }
+        }
+        Stop::Done
+    }
+}
+
+#[cfg(test)]
+mod tests;

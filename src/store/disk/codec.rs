@@ -1,0 +1,258 @@
+//! The bytes of the on-disk format (version [`FORMAT_VERSION`], `docs/storage.md`): the
+//! JSON files' shapes and the binary, CRC-32 protected trajectory file. Pure: no I/O.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::files::traj_path;
+use crate::core::{ActionCount, ActionSeq, Pool, TaskConfig, Trajectory};
+use crate::store::Counters;
+
+/// Version of the on-disk format written by this build.
+pub const FORMAT_VERSION: u32 = 1;
+
+const TRAJ_MAGIC: &[u8; 8] = b"TAMRMTRJ";
+/// magic, format, kind, dim, seq, score, length.
+const HEADER: usize = 8 + 4 + 4 + 4 + 8 + 8 + 8;
+
+/// `DATA_DIR/tamrm.json`.
+#[derive(Serialize, Deserialize)]
+pub(super) struct RootFile {
+    pub format: u32,
+}
+
+/// `tasks/<name>/task.json`.
+#[derive(Serialize, Deserialize)]
+pub(super) struct TaskFile {
+    pub format: u32,
+    pub task_id: String,
+    pub config: TaskConfig,
+}
+
+/// `tasks/<name>/pool.json`, the commit point of a task's pool.
+#[derive(Serialize, Deserialize)]
+pub(super) struct PoolFile {
+    pub format: u32,
+    pub pool_version: u64,
+    pub next_seq: u64,
+    pub seqs: Vec<u64>,
+    pub episodes_completed: u64,
+    pub steps_shaped: u64,
+}
+
+impl PoolFile {
+    pub fn new(pool: &Pool, counters: Counters) -> PoolFile {
+        PoolFile {
+            format: FORMAT_VERSION,
+            pool_version: pool.version(),
+            next_seq: pool.next_seq(),
+            seqs: pool.seqs().to_vec(),
+            episodes_completed: counters.episodes_completed,
+            steps_shaped: counters.steps_shaped,
+        }
+    }
+
+    pub fn counters(&self) -> Counters {
+        Counters {
+            episodes_completed: self.episodes_completed,
+            steps_shaped: self.steps_shaped,
+        }
+    }
+}
+
+/// The format a file declares is the one this build reads.
+pub(super) fn check_format(format: u32) -> Result<(), String> {
+    if format != FORMAT_VERSION {
+        return Err(format!(
+            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION})"
+        ));
+    }
+    Ok(())
+}
+
+/// Binary trajectory file: magic, format, kind, dim, seq, score, length, payload, CRC-32
+/// of everything before it; all little-endian.
+pub(super) fn encode_trajectory(t: &Trajectory) -> Vec<u8> {
+    let (kind, dim, len) = match &t.actions {
+        ActionSeq::Discrete(v) => (0u32, 0u32, v.len()),
+        ActionSeq::Continuous { dim, data } => (1, *dim as u32, data.len() / dim),
+    };
+    let mut b = Vec::with_capacity(HEADER + 4 + len * 4 * (dim.max(1) as usize));
+    b.extend_from_slice(TRAJ_MAGIC);
+    b.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    b.extend_from_slice(&kind.to_le_bytes());
+    b.extend_from_slice(&dim.to_le_bytes());
+    b.extend_from_slice(&t.seq.to_le_bytes());
+    b.extend_from_slice(&t.score.to_bits().to_le_bytes());
+    b.extend_from_slice(&(len as u64).to_le_bytes());
+    match &t.actions {
+        ActionSeq::Discrete(v) => v.iter().for_each(|a| b.extend_from_slice(&a.to_le_bytes())),
+        ActionSeq::Continuous { data, .. } => data
+            .iter()
+            .for_each(|a| b.extend_from_slice(&a.to_bits().to_le_bytes())),
+    }
+    let crc = crc32fast::hash(&b);
+    b.extend_from_slice(&crc.to_le_bytes());
+    b
+}
+
+fn u32s(payload: &[u8]) -> Vec<u32> {
+    payload
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Decodes and checks a trajectory file read from `path` for a task with `config`:
+/// length, magic, checksum, format, the seq against the file name, the payload size, and
+/// the actions against the action space (the validator every request uses).
+pub(super) fn decode_trajectory(
+    path: &Path,
+    b: &[u8],
+    config: &TaskConfig,
+) -> Result<Trajectory, String> {
+    if b.len() < HEADER + 4 {
+        return Err(format!(
+            "truncated: {} bytes, a trajectory file has at least {}",
+            b.len(),
+            HEADER + 4
+        ));
+    }
+    let (body, crc) = b.split_at(b.len() - 4);
+    let stored_crc = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
+    if &b[..8] != TRAJ_MAGIC {
+        return Err("not a tamrm trajectory file (bad magic)".into());
+    }
+    if crc32fast::hash(body) != stored_crc {
+        return Err("checksum mismatch: the file is corrupt or truncated".into());
+    }
+    let u32_at = |o: usize| u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
+    let u64_at = |o: usize| {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(&b[o..o + 8]);
+        u64::from_le_bytes(a)
+    };
+    check_format(u32_at(8))?;
+    let (kind, dim) = (u32_at(12), u32_at(16) as usize);
+    let seq = u64_at(20);
+    let score = f64::from_bits(u64_at(28));
+    let len = usize::try_from(u64_at(36)).map_err(|_| "length overflows")?;
+    let payload = &body[HEADER..];
+    if path.file_name() != traj_path(Path::new(""), seq).file_name() {
+        return Err(format!(
+            "holds seq {seq}, which does not match its file name"
+        ));
+    }
+    let space = config.action_space;
+    let expected_dim = space.action_dim();
+    if kind != u32::from(expected_dim > 0) || dim != expected_dim {
+        return Err(format!(
+            "action kind {kind}/dim {dim} does not match the task config"
+        ));
+    }
+    if Some(payload.len()) != len.checked_mul(dim.max(1)).and_then(|x| x.checked_mul(4)) {
+        return Err(format!(
+            "payload is {} bytes for {len} actions of dim {}",
+            payload.len(),
+            dim.max(1)
+        ));
+    }
+    if len == 0 || len > config.max_trajectory_len as usize {
+        return Err(format!(
+            "length {len} outside 1..={}",
+            config.max_trajectory_len
+        ));
+    }
+    let (actions, vectors) = if kind == 0 {
+        (u32s(payload), Vec::new())
+    } else {
+        (
+            Vec::new(),
+            u32s(payload).into_iter().map(f32::from_bits).collect(),
+        )
+    };
+    let actions = space
+        .to_seq(actions, vectors, ActionCount::AtLeastOne)
+        .map_err(|e| e.to_string())?;
+    Ok(Trajectory {
+        actions,
+        score,
+        seq,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::TaskConfigInput;
+
+    fn cfg(n: u32, m: u32) -> TaskConfig {
+        TaskConfig::resolve(&TaskConfigInput {
+            num_actions: n,
+            action_dim: m,
+            pool_capacity: Some(3),
+            ..Default::default()
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn trajectories_round_trip_bit_for_bit() {
+        let t = Trajectory {
+            actions: ActionSeq::Continuous {
+                dim: 2,
+                data: vec![1.5, -0.0, f32::MIN_POSITIVE, 3.25],
+            },
+            score: -0.1,
+            seq: 42,
+        };
+        let bytes = encode_trajectory(&t);
+        let path = traj_path(Path::new("x"), 42);
+        assert_eq!(decode_trajectory(&path, &bytes, &cfg(0, 2)).unwrap(), t);
+        // Every truncation and every single-byte flip is detected.
+        for cut in 0..bytes.len() {
+            assert!(
+                decode_trajectory(&path, &bytes[..cut], &cfg(0, 2)).is_err(),
+                "cut {cut}"
+            );
+        }
+        for i in 0..bytes.len() {
+            let mut b = bytes.clone();
+            b[i] ^= 0x40;
+            assert!(
+                decode_trajectory(&path, &b, &cfg(0, 2)).is_err(),
+                "flip {i}"
+            );
+        }
+        // Wrong kind for the task.
+        assert!(decode_trajectory(&path, &bytes, &cfg(4, 0)).is_err());
+        // Another file name.
+        assert!(decode_trajectory(&traj_path(Path::new("x"), 7), &bytes, &cfg(0, 2)).is_err());
+    }
+
+    #[test]
+    fn well_formed_files_with_invalid_actions_are_reported() {
+        let path = traj_path(Path::new("x"), 1);
+        let discrete = Trajectory {
+            actions: ActionSeq::Discrete(vec![0, 5]),
+            score: 1.0,
+            seq: 1,
+        };
+        let e = decode_trajectory(&path, &encode_trajectory(&discrete), &cfg(3, 0)).unwrap_err();
+        assert!(
+            e.contains("actions[1]") && e.contains("out of range"),
+            "{e}"
+        );
+        let nan = Trajectory {
+            actions: ActionSeq::Continuous {
+                dim: 1,
+                data: vec![f32::NAN],
+            },
+            score: 1.0,
+            seq: 1,
+        };
+        let e = decode_trajectory(&path, &encode_trajectory(&nan), &cfg(0, 1)).unwrap_err();
+        assert!(e.contains("must be finite"), "{e}");
+    }
+}

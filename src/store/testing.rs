@@ -1,0 +1,83 @@
+//! Stores for unit tests of the layers above: one whose commits can be made to fail, and
+//! one that plays a store shared with other servers (announcing changes made "elsewhere").
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use parking_lot::Mutex;
+use tokio::sync::broadcast;
+
+use super::{Committed, Counters, MemoryStore, PoolChanged, PoolOp, Store, StoreError, StoredTask};
+use crate::core::{Pool, TaskConfig};
+
+/// A [`MemoryStore`] whose commits fail while `fail` is set, and which can announce pool
+/// changes made by "another server" (`announce`), serving that pool from `load_pool`.
+#[derive(Debug)]
+pub struct TestStore {
+    inner: MemoryStore,
+    /// Commits fail while set.
+    pub fail: AtomicBool,
+    remote: Mutex<Option<Pool>>,
+    tx: broadcast::Sender<PoolChanged>,
+    shared: bool,
+}
+
+impl TestStore {
+    /// A store only this server writes (`shared` false) or one that announces changes.
+    pub fn new(shared: bool) -> Arc<TestStore> {
+        Arc::new(TestStore {
+            inner: MemoryStore::new(),
+            fail: AtomicBool::new(false),
+            remote: Mutex::new(None),
+            tx: broadcast::channel(16).0,
+            shared,
+        })
+    }
+
+    /// Plays a change made by another server: `pool` is now the store's pool of `task`.
+    pub fn announce(&self, task: &str, pool: Pool) {
+        let version = pool.version();
+        *self.remote.lock() = Some(pool);
+        let _ = self.tx.send(PoolChanged {
+            task: task.to_string(),
+            version,
+        });
+    }
+}
+
+#[async_trait::async_trait]
+impl Store for TestStore {
+    fn describe(&self) -> String {
+        "test store".into()
+    }
+    async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
+        Ok(Vec::new())
+    }
+    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+        self.inner.create_task(id, config).await
+    }
+    async fn delete_task(&self, id: &str) -> Result<(), StoreError> {
+        self.inner.delete_task(id).await
+    }
+    async fn commit(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<Committed, StoreError> {
+        if self.fail.load(Ordering::SeqCst) {
+            return Err(StoreError::new(id, "injected failure"));
+        }
+        self.inner.commit(id, base, ops, counters).await
+    }
+    async fn save_counters(&self, _: &str, _: Arc<Pool>, _: Counters) -> Result<(), StoreError> {
+        Ok(())
+    }
+    async fn load_pool(&self, _: &str) -> Result<Option<Pool>, StoreError> {
+        Ok(self.remote.lock().clone())
+    }
+    fn changes(&self) -> Option<broadcast::Receiver<PoolChanged>> {
+        self.shared.then(|| self.tx.subscribe())
+    }
+}
