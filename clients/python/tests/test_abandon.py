@@ -28,42 +28,10 @@ def abandon_unsupported(err: tamrm.TamrmError) -> bool:
     return err.code == grpc.StatusCode.UNIMPLEMENTED and "abandon" in err.details
 
 
-@pytest.fixture(scope="module")
-def server_abandons(server: tamrm.LocalServer, client: tamrm.Client) -> None:
-    """Skip the tests that need the server's abandon if the server does not implement it.
-
-    Probed with raw messages, not with ``Session.abandon``, so that a client bug fails
-    these tests instead of skipping them: a server that predates SPEC v1.1 §12 ignores
-    the unknown field (the episode goes on at step 1) or answers ``UNIMPLEMENTED``.
-    """
-    task_id = f"t/abandon-probe/{uuid.uuid4().hex}"
-    client.create_task(task_id, num_actions=2)
-    batch = pb.StepBatch(actions=[0], rewards=[0.0])
-    requests = [
-        pb.ShapeRequest(open=pb.Open(task_id=task_id, num_envs=1)),
-        pb.ShapeRequest(steps=batch),
-        pb.ShapeRequest(steps=pb.StepBatch(actions=[0], rewards=[0.0], abandon=[0])),
-    ]
-    try:
-        with grpc.insecure_channel(server.address) as channel:
-            answers = list(pb_grpc.ShapingStub(channel).Shape(iter(requests), timeout=30))
-        steps = [list(a.shaped.steps) for a in answers[1:]]
-    except grpc.RpcError as err:
-        if err.code() != grpc.StatusCode.UNIMPLEMENTED:
-            raise
-        pytest.skip(f"the server does not support StepBatch.abandon: {err.details()}")
-    finally:
-        client.delete_task(task_id)
-    if steps == [[0], [1]]:
-        pytest.skip("the server ignores StepBatch.abandon (it predates SPEC v1.1 §12)")
-    assert steps == [[0], [0]]
-
-
 def stored(client: tamrm.Client, task_id: str) -> list[tuple[list[int], float]]:
     return [(t.actions.tolist(), t.score) for t in client.get_pool(task_id).trajectories]
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_abandon_drops_the_episode(client: tamrm.Client, task_id: str) -> None:
     client.create_task(task_id, num_actions=3, pool_capacity=5)
     with client.session(task_id, 3) as s:
@@ -81,7 +49,6 @@ def test_abandon_drops_the_episode(client: tamrm.Client, task_id: str) -> None:
     assert client.get_task(task_id).stats.episodes_completed == 3
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_abandon_travels_with_the_next_batch(client: tamrm.Client, task_id: str) -> None:
     """Pending ids survive an empty step and a rejected (client-side) step; repeats merge."""
     client.create_task(task_id, num_actions=2)
@@ -103,7 +70,6 @@ def test_abandon_travels_with_the_next_batch(client: tamrm.Client, task_id: str)
     assert client.get_task(task_id).stats.episodes_completed == 0
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_abandon_validation(client: tamrm.Client, task_id: str) -> None:
     client.create_task(task_id, num_actions=2)
     with client.session(task_id, 3) as s:
@@ -130,7 +96,6 @@ def test_abandon_validation(client: tamrm.Client, task_id: str) -> None:
         s.abandon([0])
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_abandoned_episode_shaping_matches_reference(client: tamrm.Client, task_id: str) -> None:
     """After an abandon, kNN rewards use the new episode's prefix from t = 0."""
     client.create_task(task_id, num_actions=2, pool_capacity=2, min_pool_size=1, start_step=0)
@@ -154,7 +119,6 @@ def test_abandoned_episode_shaping_matches_reference(client: tamrm.Client, task_
                 assert res.knn_rewards[env] == pytest.approx(want["knn_reward"], rel=1e-12)
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_aio_abandon(server: tamrm.LocalServer, task_id: str) -> None:
     async def main() -> None:
         async with tamrm.aio.Client(server.address) as c:
@@ -230,7 +194,6 @@ def _cartpole_vector(num_envs: int) -> SyncVectorEnv:
     )
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_shaped_reward_reset_keeps_the_other_env(client: tamrm.Client, task_id: str) -> None:
     """Two single-env wrappers on one session: resetting one leaves the other's episode."""
     client.create_task(task_id, num_actions=2)
@@ -251,7 +214,6 @@ def test_shaped_reward_reset_keeps_the_other_env(client: tamrm.Client, task_id: 
     assert client.get_task(task_id).stats.episodes_completed == 0
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_vector_partial_reset_keeps_other_episodes(client: tamrm.Client, task_id: str) -> None:
     client.create_task(task_id, num_actions=2)
     with client.session(task_id, 3) as session:
@@ -269,7 +231,6 @@ def test_vector_partial_reset_keeps_other_episodes(client: tamrm.Client, task_id
     assert client.get_task(task_id).stats.episodes_completed == 0
 
 
-@pytest.mark.usefixtures("server_abandons")
 def test_sb3_reset_mid_episode_abandons(client: tamrm.Client, task_id: str) -> None:
     pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.env_util import make_vec_env
@@ -306,7 +267,6 @@ def test_sb3_reset_mid_episode_abandons(client: tamrm.Client, task_id: str) -> N
         max_size=12,
     ),
 )
-@pytest.mark.usefixtures("server_abandons")
 def test_abandon_property(
     client: tamrm.Client, num_envs: int, ops: list[tuple[list[int], list[bool], list[bool]]]
 ) -> None:
