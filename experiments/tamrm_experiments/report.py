@@ -904,7 +904,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
         sec, _res = _experiment_section(exp_name, rs, plots_rel, plots_dir, variant)
         lines += sec
     lines += ["## How this was run", ""]
-    lines += _how_run(runs_dir, runs, out)
+    lines += _how_run(runs_dir, current or runs, out, previous if earlier else None)
     lines += _cost(groups, requested)
     lines += ["## Settings and deviations from the paper", ""]
     lines += [f"- {d}" for d in DEVIATIONS]
@@ -914,24 +914,32 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
     out.write_text("\n".join(lines))
 
 
-def _how_run(runs_dir: Path, runs: list[Run], out: Path) -> list[str]:
+def _how_run(runs_dir: Path, runs: list[Run], out: Path, previous: Path | None = None) -> list[str]:
     all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
     starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
     ends = sorted(i["finished_utc"] for i in all_invs if "finished_utc" in i)
     elapsed = f"between {starts[0]} and {ends[-1]}" if starts and ends else "times unknown"
     run_wall = sum(float(r.meta.get("wall_time_s", 0)) for r in runs)
     total_steps = sum(int(r.meta.get("total_steps", 0)) for r in runs)
-    commands = sorted({i["command"] for i in all_invs})
+    # An invocation whose last record is its start record was still running (or was
+    # killed) when this report was written.
+    last: dict[str, dict[str, Any]] = {}
+    for inv in all_invs:
+        last[inv["command"]] = inv
+    running = sorted(c for c, inv in last.items() if inv.get("status") == "started")
+    commands = sorted(last)
     vers = runs[0].meta.get("versions", {})
+    prev = f" --previous {previous}" if previous is not None else ""
     lines = [
         "- The grid invocations (resumable; finished runs are skipped; several may share "
-        "the runs directory):",
+        "the runs directory; * = still running, or ended without its summary, when this "
+        "report was written):",
         "",
-        *[f"      {c}" for c in commands],
+        *[f"      {c}{' *' if c in running else ''}" for c in commands],
         "",
-        f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}`.",
-        f"- Wall time: {_busy_minutes(all_invs):.0f} min with at least one grid invocation "
-        f"running ({elapsed}); sum of the wall times of the {len(runs)} finished runs: "
+        f"  then `python -m tamrm_experiments report --runs {runs_dir} --out {out}{prev}`.",
+        f"- Wall time of the finished invocations: {_busy_minutes(all_invs):.0f} min with at "
+        f"least one running ({elapsed}); sum of the wall times of the {len(runs)} finished runs: "
         f"{run_wall / 60:.1f} min; {total_steps:,} environment steps.",
         "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
     ]
