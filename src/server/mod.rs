@@ -15,7 +15,7 @@ use tonic::transport::Server;
 
 use crate::proto::shaping_server::ShapingServer;
 use crate::registry::Registry;
-use crate::service::status::is_size_limit;
+use crate::service::status::remap_response_headers;
 use crate::service::ShapingService;
 use crate::settings::Settings;
 use crate::store::{DiskStore, MemoryStore, Store};
@@ -130,9 +130,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let closing = TaskTracker::new();
     let tracker = closing.clone();
     let router = Server::builder()
-        .layer(tower::util::MapResponseLayer::new(
-            size_limit_to_resource_exhausted,
-        ))
+        .layer(tower::util::MapResponseLayer::new(remap_response_headers))
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
@@ -163,28 +161,4 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         serve,
         closing,
     })
-}
-
-/// tonic answers a unary request over the size limit with OUT_OF_RANGE before any
-/// handler runs; rewrite that to RESOURCE_EXHAUSTED, the code SPEC §8 gives for a
-/// configured limit.
-fn size_limit_to_resource_exhausted<B>(mut res: http::Response<B>) -> http::Response<B> {
-    let h = res.headers();
-    let code_is_11 = h.get("grpc-status").map(|v| v.as_bytes()) == Some(b"11");
-    let message = h
-        .get("grpc-message")
-        .and_then(|v| v.to_str().ok())
-        .map(|m| m.replace("%20", " "))
-        .unwrap_or_default();
-    if code_is_11 && is_size_limit(tonic::Code::OutOfRange, &message) {
-        let h = res.headers_mut();
-        h.insert("grpc-status", http::HeaderValue::from_static("8"));
-        h.insert(
-            "grpc-message",
-            http::HeaderValue::from_static(
-                "message too large for this server's max_message_bytes limit",
-            ),
-        );
-    }
-    res
 }

@@ -21,13 +21,25 @@ impl From<Error> for Status {
     }
 }
 
-/// tonic reports a message over the size limit as OUT_OF_RANGE; gRPC's convention (and
-/// SPEC §8) is RESOURCE_EXHAUSTED for a configured limit. Used for statuses tonic
-/// produces while decoding; see also `server::ResourceExhaustedLayer` for unary calls.
+/// Rewrites the statuses tonic produces *before* a handler sees a request, so that a
+/// client's fault is never reported as ours (SPEC §8):
+/// - a message over `max_message_bytes` (tonic: OUT_OF_RANGE) becomes RESOURCE_EXHAUSTED,
+///   gRPC's code for a configured limit;
+/// - bytes that are not a valid protobuf message of the request's type (tonic: INTERNAL
+///   "failed to decode Protobuf message: ...") become INVALID_ARGUMENT. INTERNAL stays what
+///   operators alert on: a bug of ours or a storage failure.
+///
+/// Used on the statuses of stream messages (`service::stream`) and, through
+/// [`remap_response_headers`], on unary responses.
 pub fn remap_decode_status(status: Status) -> Status {
     if is_size_limit(status.code(), status.message()) {
         Status::resource_exhausted(format!(
             "message too large for this server's max_message_bytes limit ({})",
+            status.message()
+        ))
+    } else if is_decode_failure(status.code(), status.message()) {
+        Status::invalid_argument(format!(
+            "request: not a valid protobuf message of its type ({})",
             status.message()
         ))
     } else {
@@ -35,14 +47,48 @@ pub fn remap_decode_status(status: Status) -> Status {
     }
 }
 
-/// Whether a status is tonic's "message length too large" decode error.
-pub fn is_size_limit(code: Code, message: &str) -> bool {
+fn is_size_limit(code: Code, message: &str) -> bool {
     code == Code::OutOfRange && message.contains("message length too large")
+}
+
+fn is_decode_failure(code: Code, message: &str) -> bool {
+    code == Code::Internal && message.starts_with("failed to decode Protobuf message")
+}
+
+/// Applies [`remap_decode_status`] to a response whose status travels in its headers
+/// (tonic answers a unary request it cannot decode with a trailers-only response, before
+/// any handler runs).
+pub fn remap_response_headers<B>(mut res: http::Response<B>) -> http::Response<B> {
+    let Some(status) = Status::from_header_map(res.headers()) else {
+        return res;
+    };
+    if status.code() == Code::Ok {
+        return res;
+    }
+    let remapped = remap_decode_status(status.clone());
+    if remapped.code() != status.code() {
+        if let Err(e) = remapped.add_header(res.headers_mut()) {
+            tracing::warn!(error = %e, "could not rewrite a response status");
+        }
+    }
+    res
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn trailers_only_responses_are_rewritten_in_their_headers() {
+        let res = Status::internal("failed to decode Protobuf message: invalid wire type")
+            .into_http::<()>();
+        let res = remap_response_headers(res);
+        let s = Status::from_header_map(res.headers()).unwrap();
+        assert_eq!(s.code(), Code::InvalidArgument);
+        assert!(s.message().contains("invalid wire type"));
+        let ok = remap_response_headers(http::Response::new(()));
+        assert!(Status::from_header_map(ok.headers()).is_none());
+    }
 
     #[test]
     fn codes() {
@@ -58,6 +104,15 @@ mod tests {
         assert_eq!(
             remap_decode_status(Status::out_of_range("other")).code(),
             Code::OutOfRange
+        );
+        let s = remap_decode_status(Status::internal(
+            "failed to decode Protobuf message: buffer underflow",
+        ));
+        assert_eq!(s.code(), Code::InvalidArgument);
+        assert!(s.message().contains("buffer underflow"), "{}", s.message());
+        assert_eq!(
+            remap_decode_status(Status::internal("storage error, change not applied: x")).code(),
+            Code::Internal
         );
     }
 }
