@@ -10,9 +10,15 @@ from tamrm_experiments.configs import make_specs  # noqa: E402
 from tamrm_experiments.run import run_one, run_paths  # noqa: E402
 
 
-@pytest.mark.parametrize(("variant", "arm"), [("authors-fixed", "tamrm"), ("authors-neg", "pbrs")])
-def test_authors_run_records_fidelity_and_overrides(tmp_path, variant, arm):
-    exp = "cartpole" if variant.startswith("authors-f") else "mountaincar"
+@pytest.mark.parametrize(
+    ("exp", "variant", "arm"),
+    [
+        ("cartpole", "authors-fixed", "tamrm"),
+        ("mountaincar", "authors-neg", "pbrs"),
+        ("maze", "authors-bug-3", "tamrm"),
+    ],
+)
+def test_authors_run_records_fidelity_and_overrides(tmp_path, exp, variant, arm):
     spec = make_specs("quick", 1, [exp], [arm], variants=[variant])[0]
     with tamrm.local_server() as server:
         meta = run_one(spec, server.address, tmp_path)
@@ -31,3 +37,30 @@ def test_authors_run_records_fidelity_and_overrides(tmp_path, variant, arm):
         first = rows[0].split(",")
         assert int(first[7]) == 1  # terminated
         assert float(first[3]) == pytest.approx(int(first[1]) - 2)
+    if exp == "maze":
+        # Their score: +-100 / t with t = steps - 1 (the quick budget's episodes time out).
+        for r in rows:
+            f = r.split(",")
+            sign = 1.0 if int(f[7]) else -1.0
+            assert float(f[10]) == pytest.approx(sign * 100 / (int(f[1]) - 1))
+
+
+def test_the_observation_bug_shows_the_learner_only_the_start(monkeypatch):
+    from tamrm_experiments import authors
+
+    seen = []
+
+    class Spy(authors.TutorialDQN):
+        def act(self, s):
+            seen.append(tuple(s))
+            return super().act(s)
+
+    monkeypatch.setattr(authors, "TutorialDQN", Spy)
+    for variant, expect_one in (("authors-bug-3", True), ("authors-3", False)):
+        seen.clear()
+        spec = make_specs("quick", 1, ["maze"], ["plain"], variants=[variant])[0]
+        with tamrm.local_server() as server, tamrm.Client(server.address) as client:
+            client.create_task("t", num_actions=4, **spec.task_config())
+            with client.session("t", 1) as session:
+                authors.train_authors(spec, session, lambda _row: None, True)
+        assert (len(set(seen)) == 1) == expect_one, variant
