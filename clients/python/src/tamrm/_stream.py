@@ -76,6 +76,11 @@ class SessionCore(Generic[_R]):
         self._metadata = tuple(metadata) if metadata else None
         self._start()
 
+    def __deepcopy__(self, memo: dict[int, object]) -> SessionCore[_R]:
+        # A handle on a stream: copies of a wrapper's recorded arguments (gymnasium's
+        # ``env.spec``) refer to the same session.
+        return self
+
     def _start(self) -> None:
         """Front-end hook run at the end of ``__init__`` (the sync session opens here)."""
         raise NotImplementedError

@@ -27,6 +27,7 @@ import gymnasium
 import numpy as np
 import numpy.typing as npt
 from gymnasium import spaces
+from gymnasium.utils import RecordConstructorArgs
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 
 from tamrm._session import Session
@@ -90,7 +91,7 @@ def _single_action(action: npt.ArrayLike, config: TaskConfig) -> npt.NDArray[np.
     return arr.reshape(1, config.action_dim)
 
 
-class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
+class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs):
     """Shape the reward of a single gymnasium environment through a tamrm session.
 
     Each ``step`` sends one entry (action, reward, terminated, truncated and, with a
@@ -121,7 +122,17 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any]):
         env_id: int = 0,
         score_key: str | None = None,
     ) -> None:
-        super().__init__(env)
+        # Recorded for ``env.spec`` (``env.spec.make()``, gymnasium's ``check_env``): the
+        # same session (a session deep-copies as itself).
+        RecordConstructorArgs.__init__(
+            self,
+            session=session,
+            value_fn=value_fn,
+            env_id=env_id,
+            score_key=score_key,
+            _disable_deepcopy=True,
+        )
+        gymnasium.Wrapper.__init__(self, env)
         if not 0 <= env_id < session.num_envs:
             raise ValueError(f"env_id {env_id} is not < session.num_envs={session.num_envs}")
         check_action_space(env.action_space, session.config)
