@@ -19,7 +19,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from tamrm._client import DEFAULT_TIMEOUT, Client
+from tamrm._client import DEFAULT_ADDRESS, DEFAULT_TIMEOUT, Client
 from tamrm._errors import (
     AlreadyExists,
     DeadlineExceeded,
@@ -54,6 +54,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CONFIG_FIELDS",
+    "DEFAULT_ADDRESS",
     "DEFAULT_TIMEOUT",
     "AddTrajectoryResult",
     "AlreadyExists",

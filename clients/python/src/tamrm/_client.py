@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import re
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -18,10 +20,72 @@ from tamrm._types import AddTrajectoryResult, Pool, Task, TaskOptions
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
-__all__ = ["DEFAULT_TIMEOUT", "Client", "ClientCore", "make_channel_options"]
+__all__ = [
+    "ADDRESS_ENV",
+    "DEFAULT_ADDRESS",
+    "DEFAULT_TIMEOUT",
+    "Client",
+    "ClientCore",
+    "make_channel_options",
+    "parse_target",
+]
 
 #: Default deadline, in seconds, of every unary call (not of ``Shape`` streams).
 DEFAULT_TIMEOUT = 30.0
+
+#: The environment variable holding the clients' default address.
+ADDRESS_ENV = "TAMRM_ADDRESS"
+
+#: The address used when neither a target nor ``TAMRM_ADDRESS`` is given.
+DEFAULT_ADDRESS = "127.0.0.1:50051"
+
+# gRPC's own name-resolver schemes, passed through unchanged (``unix:/tmp/tamrm.sock``).
+_GRPC_SCHEMES = ("dns:", "unix:", "unix-abstract:", "ipv4:", "ipv6:", "vsock:")
+_HOST_PORT = re.compile(
+    r"(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?):(?P<port>[0-9]+)"
+)
+
+
+def parse_target(target: str | None) -> str:
+    """Return the gRPC target for ``target``, checked; ``None``: ``$TAMRM_ADDRESS`` or the default.
+
+    Surrounding whitespace is dropped (an address read from ``--port-file`` ends in a
+    newline). Accepted: ``host:port`` (a host name, an IPv4 address or a bracketed IPv6
+    address; port 1-65535), or a target with one of gRPC's own schemes (``dns:``,
+    ``unix:``, ``ipv4:``, ...).
+
+    Raises:
+        TypeError: ``target`` is not a string.
+        ValueError: A URL (``http://host:port``), a missing port or another malformed
+            address; the message says what is expected.
+    """
+    source = "target"
+    if target is None:
+        target = os.environ.get(ADDRESS_ENV)
+        if target is None or not target.strip():
+            return DEFAULT_ADDRESS
+        source = f"${ADDRESS_ENV}"
+    if not isinstance(target, str):
+        raise TypeError(f"target must be a str 'host:port', got {type(target).__name__}")
+    stripped = target.strip()
+    expected = f"expected host:port, e.g. {DEFAULT_ADDRESS} (the server's --listen address)"
+    if stripped.startswith(_GRPC_SCHEMES):
+        return stripped
+    if "://" in stripped:
+        rest = stripped.split("://", 1)[1].rstrip("/")
+        raise ValueError(
+            f"{source} {target!r} is a URL: {expected}; use {rest!r} without the scheme"
+        )
+    match = _HOST_PORT.fullmatch(stripped)
+    if match is None:
+        if ":" not in stripped and stripped:
+            raise ValueError(f"{source} {target!r} has no port: {expected}")
+        raise ValueError(f"{source} {target!r} is not an address: {expected}")
+    port = int(match.group("port"))
+    if not 1 <= port <= 65535:
+        raise ValueError(f"{source} {target!r}: port {port} is not in 1..65535; {expected}")
+    return stripped
+
 
 _T = TypeVar("_T")
 
@@ -44,18 +108,37 @@ class ClientCore:
 
     def __init__(
         self,
-        target: str,
+        target: str | None = None,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         credentials: grpc.ChannelCredentials | None = None,
         options: Sequence[tuple[str, Any]] | None = None,
         metadata: Sequence[tuple[str, str]] | None = None,
     ) -> None:
-        self.target = target
+        self.target = parse_target(target)
         self.timeout = timeout
-        self._channel = self._make_channel(target, credentials, make_channel_options(options))
+        self._credentials = credentials
+        self._options = tuple(options) if options else None
+        self._channel = self._make_channel(self.target, credentials, make_channel_options(options))
         self._stub = pb_grpc.ShapingStub(self._channel)
         self._metadata = tuple(metadata) if metadata else None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
+        # AsyncVectorEnv worker) opens its own channel.
+        if self._credentials is not None:
+            raise TypeError(
+                f"a {type(self).__name__} with credentials cannot be pickled (gRPC credentials "
+                "cannot be); create the client in the child process instead"
+            )
+        return (
+            _rebuild_client,
+            (type(self), self.target, self.timeout, self._options, self._metadata),
+        )
+
+    def __deepcopy__(self, memo: dict[int, object]) -> ClientCore:
+        # A handle on a connection, like the sessions: deep copies are the same client.
+        return self
 
     def _make_channel(
         self,
@@ -64,6 +147,16 @@ class ClientCore:
         options: list[tuple[str, Any]],
     ) -> Any:
         raise NotImplementedError
+
+
+def _rebuild_client(
+    cls: type[ClientCore],
+    target: str,
+    timeout: float | None,
+    options: Sequence[tuple[str, Any]] | None,
+    metadata: Sequence[tuple[str, str]] | None,
+) -> ClientCore:
+    return cls(target, timeout=timeout, options=options, metadata=metadata)
 
 
 class Client(ClientCore, Closing):
@@ -80,8 +173,13 @@ class Client(ClientCore, Closing):
             with client.session("cartpole", num_envs=8) as session:
                 shaped = session.step(actions, rewards, terminated, truncated)
 
+    A client pickles by its address and settings (not with ``credentials``): the
+    unpickled copy, e.g. in a ``SubprocVecEnv`` worker, opens its own connection.
+
     Args:
-        target: The server address, ``host:port`` (any gRPC target string).
+        target: The server address, ``host:port`` (surrounding whitespace is ignored; a
+            gRPC target with a scheme such as ``unix:/path`` is passed through). Default:
+            the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
         timeout: Deadline in seconds of each unary call (``None``: no deadline).
         credentials: Channel credentials for TLS; ``None`` for a plaintext channel.
         options: Extra gRPC channel options.

@@ -159,7 +159,8 @@ class Client(ClientCore, AsyncClosing):
     Create it inside a running event loop.
 
     Args:
-        target: The server address, ``host:port``.
+        target: The server address, ``host:port`` (default: ``$TAMRM_ADDRESS``, else
+            ``127.0.0.1:50051``); see :class:`tamrm.Client`.
         timeout: Deadline in seconds of each unary call (``None``: no deadline).
         credentials: Channel credentials for TLS; ``None`` for plaintext.
         options: Extra gRPC channel options.
