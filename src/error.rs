@@ -14,9 +14,14 @@ pub enum Error {
         /// What is wrong with it.
         message: String,
     },
-    /// No task with this id.
-    #[error("task {0:?} not found")]
-    TaskNotFound(String),
+    /// No task with this id; the message suggests the closest existing id, if one is close.
+    #[error("task {id:?} not found{}", hint.as_ref().map(|h| format!(" (did you mean {h:?}?)")).unwrap_or_default())]
+    TaskNotFound {
+        /// The id asked for.
+        id: String,
+        /// An existing id a typo away, if any.
+        hint: Option<String>,
+    },
     /// CreateTask for an existing id with a different resolved config.
     #[error("task {id:?} already exists with a different config ({detail})")]
     AlreadyExists {
@@ -37,6 +42,14 @@ pub enum Error {
 }
 
 impl Error {
+    /// An [`Error::TaskNotFound`] without a suggestion.
+    pub fn not_found(id: impl Into<String>) -> Error {
+        Error::TaskNotFound {
+            id: id.into(),
+            hint: None,
+        }
+    }
+
     /// An [`Error::InvalidArgument`] for `field`.
     pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Error {
         Error::InvalidArgument {

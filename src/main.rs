@@ -1,7 +1,7 @@
-//! The `tamrm` binary: `tamrm serve`.
+//! The `tamrm` binary: `tamrm serve` and `tamrm healthcheck`.
 
 use clap::Parser;
-use tamrm::settings::{Cli, Command, Settings};
+use tamrm::settings::{Cli, Command, HealthcheckArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
 fn main() -> std::process::ExitCode {
@@ -13,7 +13,10 @@ fn main() -> std::process::ExitCode {
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
-    let Command::Serve(args) = cli.command;
+    let args = match cli.command {
+        Command::Serve(args) => args,
+        Command::Healthcheck(h) => return healthcheck(&h),
+    };
     let settings = match Settings::resolve(&args) {
         Ok(s) => s,
         Err(e) => {
@@ -47,6 +50,28 @@ fn main() -> std::process::ExitCode {
         tracing::info!("stopped");
         std::process::ExitCode::SUCCESS
     })
+}
+
+/// `tamrm healthcheck`: exit 0 when the server serves, 1 otherwise (reason on stderr).
+fn healthcheck(args: &HealthcheckArgs) -> std::process::ExitCode {
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("cannot start the async runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let timeout = std::time::Duration::from_secs(args.timeout_secs);
+    match runtime.block_on(tamrm::server::healthcheck(args.target(), timeout)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("unhealthy: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
 }
 
 async fn wait_for_signal() {

@@ -26,6 +26,45 @@ pub struct Cli {
 pub enum Command {
     /// Serve the tamrm.v1.Shaping gRPC API (plus grpc.health.v1 and server reflection).
     Serve(ServeArgs),
+    /// Ask a server's grpc.health.v1 service whether it serves; exit 0 if it does, 1 if
+    /// not (for container health checks: no shell needed).
+    Healthcheck(HealthcheckArgs),
+}
+
+/// Flags of `tamrm healthcheck`.
+#[derive(Debug, Clone, Args)]
+pub struct HealthcheckArgs {
+    /// The server, `host:port` [default: the port of TAMRM_LISTEN on 127.0.0.1, else
+    /// 127.0.0.1:50051].
+    #[arg(long, value_name = "ADDR", value_parser = parse_addr)]
+    pub addr: Option<SocketAddr>,
+    /// Seconds to wait for the answer.
+    #[arg(long, default_value_t = 3)]
+    pub timeout_secs: u64,
+}
+
+impl HealthcheckArgs {
+    /// The address to check: `--addr`, else where `TAMRM_LISTEN` says the server listens
+    /// (an unspecified address such as 0.0.0.0 becomes loopback), else the default.
+    pub fn target(&self) -> SocketAddr {
+        if let Some(a) = self.addr {
+            return a;
+        }
+        let listen = std::env::var("TAMRM_LISTEN")
+            .ok()
+            .and_then(|s| parse_addr(&s).ok())
+            .unwrap_or_else(|| Settings::default().listen);
+        if listen.ip().is_unspecified() {
+            let ip = if listen.is_ipv4() {
+                std::net::Ipv4Addr::LOCALHOST.into()
+            } else {
+                std::net::Ipv6Addr::LOCALHOST.into()
+            };
+            SocketAddr::new(ip, listen.port())
+        } else {
+            listen
+        }
+    }
 }
 
 /// Flags of `tamrm serve`. Each can also be set by the environment variable shown, or by
@@ -35,8 +74,9 @@ pub struct ServeArgs {
     /// TOML config file (keys as in `docs/configuration.md`).
     #[arg(long, env = "TAMRM_CONFIG", value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Address to listen on; port 0 picks a free port [default: 127.0.0.1:50051].
-    #[arg(long, env = "TAMRM_LISTEN", value_name = "ADDR")]
+    /// Address to listen on, `host:port` (a host name is resolved); port 0 picks a free
+    /// port [default: 127.0.0.1:50051].
+    #[arg(long, env = "TAMRM_LISTEN", value_name = "ADDR", value_parser = parse_addr)]
     pub listen: Option<SocketAddr>,
     /// Directory for durable tasks and pools; without it, state is in memory only.
     #[arg(long, env = "TAMRM_DATA_DIR", value_name = "DIR")]
@@ -56,7 +96,8 @@ pub struct ServeArgs {
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FileSettings {
-    /// Listen address.
+    /// Listen address (`host:port`; a host name is resolved).
+    #[serde(default, deserialize_with = "deserialize_addr")]
     pub listen: Option<SocketAddr>,
     /// Data directory.
     pub data_dir: Option<PathBuf>,
@@ -145,6 +186,38 @@ impl Settings {
     }
 }
 
+/// Parses `host:port`, resolving a host name (`localhost:50051`); an IPv4 address is
+/// preferred when the name has several.
+pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
+    use std::net::ToSocketAddrs;
+    let s = s.trim();
+    if let Ok(a) = s.parse() {
+        return Ok(a);
+    }
+    if s.contains("://") {
+        return Err(format!(
+            "expected host:port, got {s:?} (no scheme such as http://)"
+        ));
+    }
+    let addrs: Vec<SocketAddr> = s
+        .to_socket_addrs()
+        .map_err(|e| format!("expected host:port, got {s:?}: {e}"))?
+        .collect();
+    addrs
+        .iter()
+        .find(|a| a.is_ipv4())
+        .or(addrs.first())
+        .copied()
+        .ok_or_else(|| format!("{s:?} resolves to no address"))
+}
+
+fn deserialize_addr<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<SocketAddr>, D::Error> {
+    let s = String::deserialize(d)?;
+    parse_addr(&s).map(Some).map_err(serde::de::Error::custom)
+}
+
 fn set<T>(slot: &mut T, value: Option<T>) {
     if let Some(v) = value {
         *slot = v;
@@ -166,6 +239,7 @@ mod tests {
         full.extend_from_slice(args);
         match Cli::try_parse_from(full).unwrap().command {
             Command::Serve(a) => a,
+            Command::Healthcheck(_) => unreachable!("parsed a serve command"),
         }
     }
 
@@ -217,6 +291,22 @@ mod tests {
         assert_eq!(s.limits.max_tasks, 7);
         std::env::remove_var("TAMRM_LISTEN");
         std::env::remove_var("TAMRM_MAX_TASKS");
+
+        let s = Settings::resolve(&parse(&["--listen", "localhost:7002"])).unwrap();
+        assert_eq!(
+            s.listen,
+            "127.0.0.1:7002".parse().unwrap(),
+            "host names resolve"
+        );
+        for bad in ["http://127.0.0.1:1", "127.0.0.1", "nohost.invalid:1"] {
+            let mut full = vec!["tamrm", "serve", "--listen", bad];
+            full.truncate(4);
+            let e = Cli::try_parse_from(full).unwrap_err().to_string();
+            assert!(
+                e.contains("host:port") || e.contains("resolve"),
+                "{bad}: {e}"
+            );
+        }
 
         std::fs::write(&file, "listn = \"x\"\n").unwrap();
         let e = Settings::resolve(&parse(&["--config", file_arg])).unwrap_err();

@@ -119,7 +119,22 @@ impl Registry {
         self.tasks
             .get(id)
             .map(|t| t.clone())
-            .ok_or_else(|| Error::TaskNotFound(id.to_string()))
+            .ok_or_else(|| Error::TaskNotFound {
+                id: id.to_string(),
+                hint: self.closest(id),
+            })
+    }
+
+    /// The existing id closest to `id` by edit distance, if it is a typo away (at most a
+    /// third of the id's length, and at most 3 edits). Looked at only on a miss.
+    fn closest(&self, id: &str) -> Option<String> {
+        let max = (id.chars().count() / 3).clamp(1, 3);
+        self.tasks
+            .iter()
+            .map(|e| (edit_distance(id, e.key()), e.key().clone()))
+            .filter(|(d, _)| *d <= max)
+            .min()
+            .map(|(_, k)| k)
     }
 
     /// Every task, ordered by id.
@@ -185,6 +200,22 @@ impl Registry {
             }
         }))
     }
+}
+
+/// Levenshtein distance over characters.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut prev = row[0];
+        row[0] = i + 1;
+        for (j, &cb) in b.iter().enumerate() {
+            let cur = row[j + 1];
+            row[j + 1] = (prev + usize::from(ca != cb)).min(row[j] + 1).min(cur + 1);
+            prev = cur;
+        }
+    }
+    row[b.len()]
 }
 
 #[cfg(test)]

@@ -120,7 +120,7 @@ impl TaskHandle {
     /// `NOT_FOUND` once the task was deleted.
     pub fn check_live(&self) -> Result<(), Error> {
         if self.deleted.load(Ordering::Acquire) {
-            Err(Error::TaskNotFound(self.id.clone()))
+            Err(Error::not_found(self.id.clone()))
         } else {
             Ok(())
         }

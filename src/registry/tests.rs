@@ -92,13 +92,16 @@ async fn offers_resets_and_deletion() {
     let ids: Vec<_> = r.list().iter().map(|t| t.id().to_string()).collect();
     assert_eq!(ids, ["a", "t"], "listed by id");
     r.delete("t").await.unwrap();
-    assert!(matches!(r.get("t"), Err(Error::TaskNotFound(_))));
+    assert!(matches!(r.get("t"), Err(Error::TaskNotFound { .. })));
     assert!(matches!(
         t.offer(acts(&[0]), 5.0).await,
-        Err(Error::TaskNotFound(_))
+        Err(Error::TaskNotFound { .. })
     ));
-    assert!(matches!(t.pool_snapshot(), Err(Error::TaskNotFound(_))));
-    assert!(matches!(r.delete("t").await, Err(Error::TaskNotFound(_))));
+    assert!(matches!(t.pool_snapshot(), Err(Error::TaskNotFound { .. })));
+    assert!(matches!(
+        r.delete("t").await,
+        Err(Error::TaskNotFound { .. })
+    ));
 }
 
 #[tokio::test]
@@ -169,4 +172,23 @@ async fn a_shared_store_change_refreshes_the_snapshot_and_never_goes_back() {
     let local = Arc::new(registry(Limits::default()).await);
     assert!(local.watch_changes().is_none());
     watcher.abort();
+}
+
+#[tokio::test]
+async fn an_unknown_id_suggests_a_close_one() {
+    let r = registry(Limits::default()).await;
+    r.create("cartpole", &discrete(2, 2)).await.unwrap();
+    r.create("maze/v1", &discrete(4, 2)).await.unwrap();
+    let msg = |id: &str| r.get(id).err().map(|e| e.to_string()).unwrap_or_default();
+    assert_eq!(
+        msg("cartpol"),
+        "task \"cartpol\" not found (did you mean \"cartpole\"?)"
+    );
+    assert_eq!(
+        msg("maze/v2"),
+        "task \"maze/v2\" not found (did you mean \"maze/v1\"?)"
+    );
+    assert_eq!(msg("mountaincar"), "task \"mountaincar\" not found");
+    assert_eq!(edit_distance("kitten", "sitting"), 3);
+    assert_eq!(edit_distance("", "ab"), 2);
 }

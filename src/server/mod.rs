@@ -162,3 +162,31 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         closing,
     })
 }
+
+/// Asks the server at `addr` whether it serves `tamrm.v1.Shaping` (grpc.health.v1),
+/// within `timeout`. `Ok` when it answers SERVING; otherwise why not.
+pub async fn healthcheck(addr: SocketAddr, timeout: Duration) -> Result<(), String> {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+    let check = async {
+        let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+            .map_err(|e| e.to_string())?
+            .connect()
+            .await
+            .map_err(|e| format!("cannot connect to {addr}: {e}"))?;
+        let service = <ShapingServer<ShapingService> as tonic::server::NamedService>::NAME;
+        let answer = HealthClient::new(channel)
+            .check(HealthCheckRequest {
+                service: service.to_string(),
+            })
+            .await
+            .map_err(|s| format!("{addr}: {}", s.message()))?;
+        match answer.into_inner().status() {
+            ServingStatus::Serving => Ok(()),
+            other => Err(format!("{addr}: {service} is {}", other.as_str_name())),
+        }
+    };
+    tokio::time::timeout(timeout, check)
+        .await
+        .unwrap_or_else(|_| Err(format!("{addr}: no answer within {timeout:?}")))
+}

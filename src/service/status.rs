@@ -8,7 +8,7 @@ impl From<Error> for Status {
     fn from(e: Error) -> Status {
         let code = match &e {
             Error::InvalidArgument { .. } => Code::InvalidArgument,
-            Error::TaskNotFound(_) => Code::NotFound,
+            Error::TaskNotFound { .. } => Code::NotFound,
             Error::AlreadyExists { .. } => Code::AlreadyExists,
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::ShuttingDown => Code::Unavailable,
@@ -95,7 +95,7 @@ mod tests {
         let s: Status = Error::invalid("steps.rewards[2]", "must be finite, got NaN").into();
         assert_eq!(s.code(), Code::InvalidArgument);
         assert_eq!(s.message(), "steps.rewards[2]: must be finite, got NaN");
-        let s: Status = Error::TaskNotFound("x".into()).into();
+        let s: Status = Error::not_found("x").into();
         assert_eq!(s.code(), Code::NotFound);
         let s = remap_decode_status(Status::out_of_range(
             "Error, decoded message length too large: found 10 bytes, the limit is: 5 bytes",

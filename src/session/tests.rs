@@ -78,7 +78,10 @@ async fn open_checks_its_request() {
     assert!(
         matches!(open(&r, "t", 5), Err(Error::ResourceExhausted(m)) if m.contains("max_envs_per_stream"))
     );
-    assert!(matches!(open(&r, "nope", 1), Err(Error::TaskNotFound(_))));
+    assert!(matches!(
+        open(&r, "nope", 1),
+        Err(Error::TaskNotFound { .. })
+    ));
     let s = open(&r, "t", 4).unwrap();
     assert_eq!(s.num_envs(), 4);
     assert_eq!(s.task().stats().open_streams, 1);
@@ -239,7 +242,7 @@ async fn a_deleted_task_ends_its_sessions_with_not_found() {
         rewards: &[0.0],
         ..Default::default()
     };
-    assert!(matches!(s.step(&b).await, Err(Error::TaskNotFound(_))));
+    assert!(matches!(s.step(&b).await, Err(Error::TaskNotFound { .. })));
 }
 
 #[tokio::test]

@@ -50,6 +50,9 @@ struct Entry {
 #[derive(Debug)]
 struct Inner {
     root: PathBuf,
+    /// `DATA_DIR/LOCK`, locked exclusively while the store is open: a second process (or
+    /// a second store in this one) cannot open the same data dir.
+    _lock: fs::File,
     /// task id → its directory and version, for the tasks that exist.
     tasks: Mutex<HashMap<String, Entry>>,
 }
@@ -58,6 +61,25 @@ struct Inner {
 #[derive(Debug, Clone)]
 pub struct DiskStore {
     inner: Arc<Inner>,
+}
+
+/// Takes the data dir's lock, or explains who holds it.
+fn lock_data_dir(root: &Path) -> Result<fs::File, StoreError> {
+    let path = root.join("LOCK");
+    let file = fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| err(&path, format!("open: {e}")))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(fs::TryLockError::WouldBlock) => Err(err(
+            root,
+            "the data dir is in use by another tamrm process (its LOCK file is held); stop that process or use another data dir",
+        )),
+        Err(fs::TryLockError::Error(e)) => Err(err(&path, format!("lock: {e}"))),
+    }
 }
 
 fn checked<T>(path: &Path, r: Result<T, String>) -> Result<T, StoreError> {
@@ -70,6 +92,7 @@ impl DiskStore {
         let root = root.into();
         let tasks = root.join("tasks");
         fs::create_dir_all(&tasks).map_err(|e| err(&tasks, format!("create: {e}")))?;
+        let lock = lock_data_dir(&root)?;
         remove_tmp_files(&root)?;
         let marker = root.join("tamrm.json");
         if marker.exists() {
@@ -85,6 +108,7 @@ impl DiskStore {
         Ok(DiskStore {
             inner: Arc::new(Inner {
                 root,
+                _lock: lock,
                 tasks: Mutex::new(HashMap::new()),
             }),
         })
@@ -366,5 +390,20 @@ impl Store for DiskStore {
         let id = id.to_string();
         self.run(move |s| Inner::write_pool_file(&s.entry(&id)?.dir, &pool, counters))
             .await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_data_dir_opens_once_at_a_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = DiskStore::open(dir.path()).unwrap();
+        let e = DiskStore::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("in use by another tamrm process"), "{e}");
+        drop(first);
+        DiskStore::open(dir.path()).expect("the lock is released with the store");
     }
 }
