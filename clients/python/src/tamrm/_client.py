@@ -303,7 +303,7 @@ class Client(ClientCore, Closing):
             TaskNotFound: No such task.
             InvalidArgument: ``num_envs`` was rejected.
         """
-        return Session(self._stub, task_id, num_envs, metadata=self._metadata)
+        return Session(self, task_id, num_envs)
 
     # -- lifecycle -------------------------------------------------------------------
 

@@ -14,11 +14,20 @@ __all__ = ["AsyncClosing", "Closing"]
 class Closing:
     """A context manager whose exit calls the blocking ``close()``."""
 
+    #: Whether the object is open in a ``with`` block (which then owns it: the wrappers
+    #: leave such a session open on their ``close()``).
+    _in_with: bool = False
+
     def close(self) -> None:
         """Release the object's resources (idempotent)."""
         raise NotImplementedError
 
+    def _close_on_exit(self, exc: BaseException | None) -> None:
+        """What leaving the ``with`` block does (``exc``: the exception unwinding it)."""
+        self.close()
+
     def __enter__(self) -> Self:
+        self._in_with = True
         return self
 
     def __exit__(
@@ -27,7 +36,8 @@ class Closing:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self.close()
+        self._in_with = False
+        self._close_on_exit(exc)
 
 
 class AsyncClosing:

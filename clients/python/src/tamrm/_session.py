@@ -27,7 +27,9 @@ class Session(SessionCore[StepResult], Closing):
     Create it with :meth:`tamrm.Client.session` and use it as a context manager; each
     :meth:`step` is one round trip (one ``StepBatch`` out, one ``ShapedBatch`` back) on
     the stream, which stays open until :meth:`close`. A session is not thread-safe: use
-    one per thread (several sessions may shape on the same task at once).
+    one per thread (several sessions may shape on the same task at once). A session
+    pickles as a new session of the same task on (the unpickled copy of) its client,
+    e.g. in a ``SubprocVecEnv`` worker.
 
     Attributes:
         task_id: The task shaped.

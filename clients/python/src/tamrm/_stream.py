@@ -8,8 +8,8 @@ messages (blocking or awaiting).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Generic, TypeVar
+from collections.abc import Mapping
+from typing import Any, Generic, TypeVar
 
 import grpc
 import numpy as np
@@ -42,15 +42,10 @@ class SessionCore(Generic[_R]):
     _pool_version: int
     _closed: bool
     _error: BaseException | None
+    #: Set on a session made by unpickling: nobody else holds it, its wrapper owns it.
+    _unpickled: bool = False
 
-    def __init__(
-        self,
-        stub: pb_grpc.ShapingStub,
-        task_id: str,
-        num_envs: int,
-        *,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
+    def __init__(self, client: Any, task_id: str, num_envs: int) -> None:
         """Check the arguments and start the session (see :meth:`_start`).
 
         Raises:
@@ -72,14 +67,21 @@ class SessionCore(Generic[_R]):
         self._pool_version = 0
         self._closed = True
         self._error = None
-        self._stub = stub
-        self._metadata = tuple(metadata) if metadata else None
+        self._client = client
+        self._stub: pb_grpc.ShapingStub = client._stub
+        self._metadata: tuple[tuple[str, str], ...] | None = client._metadata
         self._start()
 
     def __deepcopy__(self, memo: dict[int, object]) -> SessionCore[_R]:
         # A handle on a stream: copies of a wrapper's recorded arguments (gymnasium's
         # ``env.spec``) refer to the same session.
         return self
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickled as "a session of this task on this client": unpickling (in a
+        # SubprocVecEnv / AsyncVectorEnv worker) connects the pickled client and opens a
+        # new session there, which the worker's wrapper then owns.
+        return (_reopen, (self._client, self.task_id, self.num_envs))
 
     def _start(self) -> None:
         """Front-end hook run at the end of ``__init__`` (the sync session opens here)."""
@@ -310,6 +312,13 @@ class SessionCore(Generic[_R]):
         self._closed = True
         self._episode_steps[:] = 0
         return True
+
+
+def _reopen(client: Any, task_id: str, num_envs: int) -> Any:
+    """Unpickle a session: a new one on (the unpickled copy of) its client."""
+    session = client.session(task_id, num_envs)
+    session._unpickled = True
+    return session
 
 
 def _abandon_ids(value: npt.ArrayLike, num_envs: int) -> list[int]:

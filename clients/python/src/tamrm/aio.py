@@ -219,7 +219,7 @@ class Client(ClientCore, AsyncClosing):
 
     def session(self, task_id: str, num_envs: int = 1) -> AsyncSession:
         """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``."""
-        return AsyncSession(self._stub, task_id, num_envs, metadata=self._metadata)
+        return AsyncSession(self, task_id, num_envs)
 
     async def close(self) -> None:
         """Close the channel (open sessions are cancelled)."""

@@ -84,6 +84,18 @@ def check_session(
     check_action_space(action_space, session.config)
 
 
+def close_session(session: Session, close: bool | None) -> None:
+    """Close a wrapper's session on the wrapper's ``close()`` if the wrapper owns it.
+
+    ``close`` is the wrapper's ``close_session`` argument: ``True`` / ``False`` decide;
+    ``None`` (the default) closes the session unless it is open in a ``with`` block,
+    which owns it then. A session made by unpickling (the copy of a wrapper in a worker
+    process) is always the wrapper's own.
+    """
+    if session._unpickled or (close is None and not session._in_with) or close:
+        session.close()
+
+
 def _single_action(action: npt.ArrayLike, config: TaskConfig) -> npt.NDArray[np.generic]:
     arr = np.asarray(action)
     if config.discrete:
@@ -111,6 +123,9 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs)
             that ends an episode, e.g. ``100 / steps`` in a sparse maze. An ending step
             whose ``info`` lacks the key (e.g. a ``TimeLimit`` truncation) gets the
             server's default, the sum of the episode's environment rewards.
+        close_session: Whether :meth:`close` closes ``session``. By default (``None``) it
+            does, unless the session is open in a ``with`` block (which then owns it):
+            ``ShapedReward(env, client.session(task_id))`` hands the session over.
     """
 
     def __init__(
@@ -121,15 +136,17 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs)
         *,
         env_id: int = 0,
         score_key: str | None = None,
+        close_session: bool | None = None,
     ) -> None:
         # Recorded for ``env.spec`` (``env.spec.make()``, gymnasium's ``check_env``): the
-        # same session (a session deep-copies as itself).
+        # same session (a session deep-copies as itself), borrowed by the copies.
         RecordConstructorArgs.__init__(
             self,
             session=session,
             value_fn=value_fn,
             env_id=env_id,
             score_key=score_key,
+            close_session=False,
             _disable_deepcopy=True,
         )
         gymnasium.Wrapper.__init__(self, env)
@@ -140,6 +157,7 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs)
         self.value_fn = value_fn
         self.env_id = env_id
         self.score_key = score_key
+        self.close_session = close_session
         self._env_ids = None if session.num_envs == 1 else np.array([env_id], dtype=np.int64)
         self._obs: Any = None
 
@@ -152,6 +170,13 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs)
             self.session.abandon([self.env_id])
         self._obs = obs
         return obs, info
+
+    def close(self) -> None:
+        """Close the environment, then the session if the wrapper owns it (``close_session``)."""
+        try:
+            super().close()
+        finally:
+            close_session(self.session, self.close_session)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         """Step the environment and return the shaped reward (the original is in ``info``)."""
@@ -227,6 +252,9 @@ class VectorShapedReward(VectorWrapper):
             up in ``info["final_info"]``). Ending sub-environments without it (mask
             ``info["_" + score_key]``) get the server's default, the sum of the episode's
             environment rewards.
+        close_session: Whether :meth:`close` closes ``session``. By default (``None``) it
+            does, unless the session is open in a ``with`` block (which then owns it):
+            ``VectorShapedReward(envs, client.session(task_id))`` hands the session over.
     """
 
     def __init__(
@@ -236,10 +264,12 @@ class VectorShapedReward(VectorWrapper):
         value_fn: ValueFn | None = None,
         *,
         score_key: str | None = None,
+        close_session: bool | None = None,
     ) -> None:
         super().__init__(env)
         check_session(session, env.num_envs, env.single_action_space, "the vector env")
         self.session = session
+        self.close_session = close_session
         self.value_fn = value_fn
         self.autoreset_mode = _autoreset_mode(env)
         self.score_key = score_key
@@ -268,6 +298,13 @@ class VectorShapedReward(VectorWrapper):
         self._autoreset[mask] = False
         self._obs = obs
         return obs, info
+
+    def close(self, **kwargs: Any) -> None:
+        """Close the vector env, then the session if the wrapper owns it (``close_session``)."""
+        try:
+            super().close(**kwargs)
+        finally:
+            close_session(self.session, self.close_session)
 
     def step(
         self, actions: npt.ArrayLike

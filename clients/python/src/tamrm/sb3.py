@@ -34,7 +34,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
 
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
-from tamrm.gym import check_session
+from tamrm.gym import check_session, close_session
 
 __all__ = ["ShapedVecEnv", "model_value_fn"]
 
@@ -101,6 +101,8 @@ class ShapedVecEnv(VecEnvWrapper):
             that ends an episode, e.g. ``100 / steps`` in a sparse maze. Ending rows whose
             ``info`` lacks the key (e.g. a ``TimeLimit`` truncation) get the server's
             default, the sum of the episode's environment rewards.
+        close_session: Whether :meth:`close` closes ``session``. By default (``None``) it
+            does, unless the session is open in a ``with`` block (which then owns it).
     """
 
     def __init__(
@@ -110,10 +112,12 @@ class ShapedVecEnv(VecEnvWrapper):
         value_fn: ValueFn | None = None,
         *,
         score_key: str | None = None,
+        close_session: bool | None = None,
     ) -> None:
         super().__init__(venv)
         check_session(session, venv.num_envs, venv.action_space, "the VecEnv")
         self.session = session
+        self.close_session = close_session
         self.value_fn = value_fn
         self.score_key = score_key
         self._obs: ObsBatch | None = None
@@ -135,6 +139,13 @@ class ShapedVecEnv(VecEnvWrapper):
                 stacklevel=2,
             )
         return self
+
+    def close(self) -> None:
+        """Close the VecEnv, then the session if the wrapper owns it (``close_session``)."""
+        try:
+            self.venv.close()
+        finally:
+            close_session(self.session, self.close_session)
 
     def reset(self) -> VecEnvObs:
         """Reset every sub-environment; abandon the episodes that were in progress."""

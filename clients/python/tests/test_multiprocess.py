@@ -1,0 +1,106 @@
+"""Clients, sessions and wrappers across processes (issue 15, item 2)."""
+
+from __future__ import annotations
+
+import copy
+import pickle
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AsyncVectorEnv
+from stable_baselines3.common.vec_env import SubprocVecEnv
+
+import tamrm
+import tamrm.gym
+import tamrm.sb3
+
+
+def open_streams(client: tamrm.Client, task_id: str, want: int) -> int:
+    deadline = time.monotonic() + 10.0
+    while True:
+        n = client.get_task(task_id).stats.open_streams
+        if n == want or time.monotonic() > deadline:
+            return n
+        time.sleep(0.05)
+
+
+def test_client_pickles_by_address_and_settings(server: tamrm.LocalServer, task_id: str) -> None:
+    with tamrm.Client(server.address, timeout=7.0, metadata=[("x-who", "me")]) as client:
+        clone = pickle.loads(pickle.dumps(client))
+        assert isinstance(clone, tamrm.Client)
+        assert clone is not client
+        assert (clone.target, clone.timeout) == (server.address, 7.0)
+        clone.create_task(task_id, num_actions=2)
+        assert client.get_task(task_id).task_id == task_id
+        clone.close()
+        assert copy.deepcopy(client) is client  # a handle: not duplicated by deepcopy
+
+
+def test_client_with_credentials_does_not_pickle(server: tamrm.LocalServer) -> None:
+    import grpc
+
+    creds = grpc.ssl_channel_credentials()
+    with tamrm.Client(server.address, credentials=creds) as client:
+        with pytest.raises(TypeError, match="credentials"):
+            pickle.dumps(client)
+
+
+def test_session_pickles_as_a_new_session(client: tamrm.Client, task_id: str) -> None:
+    client.create_task(task_id, num_actions=2)
+    with client.session(task_id, 3) as session:
+        clone = pickle.loads(pickle.dumps(session))
+        assert clone is not session
+        assert (clone.task_id, clone.num_envs, clone.closed) == (task_id, 3, False)
+        assert open_streams(client, task_id, 2) == 2
+        clone.close()
+    assert open_streams(client, task_id, 0) == 0
+
+
+def shaped_cartpole(client: tamrm.Client, task_id: str) -> gym.Env:  # type: ignore[type-arg]
+    return tamrm.gym.ShapedReward(gym.make("CartPole-v1"), client.session(task_id))
+
+
+def run_vector(envs: gym.vector.VectorEnv, steps: int) -> dict:  # type: ignore[type-arg]
+    envs.reset(seed=0)
+    info: dict = {}  # type: ignore[type-arg]
+    for _ in range(steps):
+        _, _, _, _, info = envs.step(np.array([0, 1]))
+    return info
+
+
+def test_async_vector_env_factories_capture_the_client(client: tamrm.Client, task_id: str) -> None:
+    client.create_task(task_id, num_actions=2)
+    # The factories capture the client: each worker reconnects and opens its own session.
+    envs = AsyncVectorEnv([lambda: shaped_cartpole(client, task_id)] * 2, context="spawn")
+    try:
+        info = run_vector(envs, 5)
+        assert open_streams(client, task_id, 2) == 2
+        assert np.all(info["original_reward"] == 1.0)
+        assert "knn_reward" in info
+    finally:
+        envs.close()
+    # Each worker's wrapper owned its session and closed it.
+    assert open_streams(client, task_id, 0) == 0
+
+
+def test_subproc_vec_env_factory_captures_a_wrapper(client: tamrm.Client, task_id: str) -> None:
+    client.create_task(task_id, num_actions=2)
+    wrapper = shaped_cartpole(client, task_id)  # built here, with a session of this process
+    assert open_streams(client, task_id, 1) == 1
+    venv = SubprocVecEnv([lambda: wrapper] * 2)
+    try:
+        venv.reset()
+        for _ in range(3):
+            venv.step_async(np.array([1, 0]))
+            _, _, _, infos = venv.step_wait()
+        assert [info["shaping_step"] for info in infos] == [2, 2]
+        # The parent's session plus one opened by each worker's copy of the wrapper.
+        assert open_streams(client, task_id, 3) == 3
+    finally:
+        venv.close()
+    assert open_streams(client, task_id, 1) == 1
+    assert not wrapper.session.closed
+    wrapper.close()
+    assert open_streams(client, task_id, 0) == 0
