@@ -4,26 +4,17 @@ from __future__ import annotations
 
 import copy
 import pickle
-import time
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.vector import AsyncVectorEnv
 from stable_baselines3.common.vec_env import SubprocVecEnv
+from streams import open_streams
 
 import tamrm
 import tamrm.gym
 import tamrm.sb3
-
-
-def open_streams(client: tamrm.Client, task_id: str, want: int) -> int:
-    deadline = time.monotonic() + 10.0
-    while True:
-        n = client.get_task(task_id).stats.open_streams
-        if n == want or time.monotonic() > deadline:
-            return n
-        time.sleep(0.05)
 
 
 def test_client_pickles_by_address_and_settings(server: tamrm.LocalServer, task_id: str) -> None:

@@ -2,27 +2,17 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
 import pytest
 from stable_baselines3.common.env_util import make_vec_env
+from streams import open_streams
 
 import tamrm
 import tamrm.gym
 import tamrm.sb3
-
-
-def open_streams(client: tamrm.Client, task_id: str, want: int) -> int:
-    """The task's open streams, waiting (briefly) for the server to count ``want``."""
-    deadline = time.monotonic() + 5.0
-    while True:
-        n = client.get_task(task_id).stats.open_streams
-        if n == want or time.monotonic() > deadline:
-            return n
-        time.sleep(0.02)
 
 
 def reset(env: Any) -> None:

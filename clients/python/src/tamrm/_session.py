@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -11,7 +12,7 @@ import grpc
 
 from tamrm._batch import StepInput
 from tamrm._closing import Closing
-from tamrm._errors import TamrmError, from_rpc_error
+from tamrm._errors import SessionClosed, TamrmError, from_rpc_error
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._stream import SessionCore
 from tamrm._types import StepResult
@@ -69,6 +70,11 @@ class Session(SessionCore[StepResult], Closing):
             err: TamrmError = from_rpc_error(exc)
         except StopIteration:
             err = TamrmError("the server ended the Shape stream unexpectedly")
+        except KeyboardInterrupt:
+            # Ctrl-C while waiting for the server: the stream's state is unknown, end it
+            # now (so that close() has nothing to wait for) and let the interrupt go on.
+            self._abort(SessionClosed(f"the session on task {self.task_id!r} was interrupted"))
+            raise
         self._abort(err)
         raise err from None
 
@@ -106,7 +112,10 @@ class Session(SessionCore[StepResult], Closing):
     def close(self) -> None:
         """Half-close the stream and wait (briefly) for the server to end it.
 
-        Idempotent. Episodes still in progress are discarded by the server.
+        Idempotent. Episodes still in progress are discarded by the server. While a
+        ``KeyboardInterrupt`` unwinds (``close`` in a ``finally`` or ``with`` exit after
+        Ctrl-C) the stream is cancelled at once instead; a Ctrl-C during the wait cancels
+        it too.
         """
         if not self._closing():
             return
@@ -114,9 +123,17 @@ class Session(SessionCore[StepResult], Closing):
         responses = self._responses
         if responses is None:
             return
+        if isinstance(sys.exc_info()[1], KeyboardInterrupt):
+            responses.cancel()
+            return
         done = threading.Event()
         responses.add_done_callback(lambda _call: done.set())
-        if not done.wait(_CLOSE_TIMEOUT):
+        try:
+            finished = done.wait(_CLOSE_TIMEOUT)
+        except KeyboardInterrupt:
+            responses.cancel()
+            raise
+        if not finished:
             responses.cancel()
 
     def __del__(self) -> None:
