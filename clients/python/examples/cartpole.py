@@ -135,7 +135,16 @@ def train(
 def connect(server: str | None) -> Iterator[tamrm.Client]:
     """A client of ``server``, or of a local server started for the example."""
     if server is not None:
-        with tamrm.Client(server) as client:
+        try:
+            client = tamrm.Client(server)
+        except ValueError as exc:
+            raise SystemExit(f"cartpole.py: --server: {exc}") from None
+        with client:
+            # Check the server before training (the unshaped run comes first).
+            try:
+                client.list_tasks()
+            except tamrm.TamrmError as exc:
+                raise SystemExit(f"cartpole.py: no tamrm server at {server}: {exc}") from None
             yield client
         return
     with tamrm.local_server() as local, tamrm.Client(local.address) as client:

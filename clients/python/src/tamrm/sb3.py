@@ -29,8 +29,19 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
+
+try:
+    from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+    from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
+except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the install
+    if (_missing.name or "").split(".")[0] not in ("stable_baselines3", "torch"):
+        raise
+    raise ImportError(
+        f"tamrm.sb3 needs Stable-Baselines3 ({_missing.name} is not installed): "
+        "pip install 'tamrm[sb3]' (it brings PyTorch; see docs/python.md for CPU-only "
+        "wheels)",
+        name=_missing.name,
+    ) from None
 
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
