@@ -89,6 +89,7 @@ fn open_msg(task_id: &str, num_envs: u32) -> ShapeRequest {
         kind: Some(shape_request::Kind::Open(proto::Open {
             task_id: task_id.into(),
             num_envs,
+            ..Default::default()
         })),
     }
 }

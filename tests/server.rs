@@ -1588,3 +1588,64 @@ async fn health_and_reflection() {
     }
     server.shutdown().await;
 }
+
+/// SPEC §9 and §12 through the proto: `Open.resume`, `Open.client_id` and
+/// `StepBatch.abandon` reach the session layer (the semantics are tested in
+/// `src/session/tests.rs`).
+#[tokio::test]
+async fn resume_and_abandon_travel_through_the_proto() {
+    let server = common::start_server(None, |_| {}).await;
+    let mut c = common::connect(server.addr()).await;
+    common::create(&mut c, "r", common::discrete(2, 4, 4, 0, 1)).await;
+    let open = |resume: Vec<proto::EnvResume>| proto::ShapeRequest {
+        kind: Some(proto::shape_request::Kind::Open(proto::Open {
+            task_id: "r".into(),
+            num_envs: 2,
+            resume,
+            client_id: "c-1".into(),
+        })),
+    };
+    // An invalid resume: the stream ends with INVALID_ARGUMENT naming the field.
+    let mut s = common::Stream::raw(&mut c).await.unwrap();
+    s.send(open(vec![proto::EnvResume {
+        env_id: 5,
+        ..Default::default()
+    }]))
+    .await;
+    let e = s.recv().await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument);
+    assert!(
+        e.message().contains("open.resume[0].env_id"),
+        "{}",
+        e.message()
+    );
+    // A valid one: env 1 continues at t = 3, env 0 starts at t = 0.
+    let mut s = common::Stream::raw(&mut c).await.unwrap();
+    s.send(open(vec![proto::EnvResume {
+        env_id: 1,
+        actions: vec![0, 1, 1],
+        reward_sum: 2.0,
+        episode: 4,
+        ..Default::default()
+    }]))
+    .await;
+    assert!(matches!(
+        s.recv().await.unwrap(),
+        Some(proto::ShapeResponse {
+            kind: Some(proto::shape_response::Kind::Opened(_))
+        })
+    ));
+    let b = s
+        .step(common::batch(&[0, 0], &[0.0, 0.0], &[]))
+        .await
+        .unwrap();
+    assert_eq!(b.steps, [0, 3]);
+    let b = s
+        .step(StepBatch {
+            abandon: vec![1],
+            ..common::batch(&[0, 0], &[0.0, 0.0], &[])
+        })
+        .await
+        .unwrap();
+    assert_eq!(b.steps, [1, 0], "env 1 was abandoned before the entries");
+}

@@ -84,6 +84,23 @@ impl Episode {
         }
     }
 
+    /// The episode a client resumes (SPEC §9): it has taken `actions` (all t of them) and
+    /// earned `reward_sum`. Only the first `max_trajectory_len` actions are recorded, as
+    /// in an uninterrupted episode; the distances to the pool are computed from them at
+    /// the next step, so every later value equals the uninterrupted stream's.
+    pub fn resume(mut actions: ActionSeq, reward_sum: f64, max_trajectory_len: u32) -> Episode {
+        let t = actions.len() as u64;
+        actions.truncate(max_trajectory_len as usize);
+        Episode {
+            t,
+            recorded: actions,
+            reward_sum,
+            synced_version: None,
+            seqs: Vec::new(),
+            dis: Vec::new(),
+        }
+    }
+
     /// Index of the next step.
     pub fn t(&self) -> u64 {
         self.t

@@ -54,6 +54,19 @@ pub struct TaskHandle {
     steps_shaped: AtomicU64,
     open_streams: AtomicU32,
     store: Arc<dyn Store>,
+    /// Per client id: per env, the number of episodes whose end was committed (SPEC §9).
+    ended: parking_lot::Mutex<EndedEpisodes>,
+}
+
+/// How many client ids a task remembers for the no-double-commit rule at most; the
+/// oldest is forgotten first.
+pub const MAX_REMEMBERED_CLIENTS: usize = 65_536;
+
+/// The episode ends committed per client and env, bounded in clients.
+#[derive(Debug, Default)]
+struct EndedEpisodes {
+    by_client: std::collections::HashMap<Arc<str>, std::collections::HashMap<u32, u64>>,
+    order: std::collections::VecDeque<Arc<str>>,
 }
 
 /// Decrements a task's open-stream count when dropped.
@@ -97,6 +110,7 @@ impl TaskHandle {
             steps_shaped: AtomicU64::new(counters.steps_shaped),
             open_streams: AtomicU32::new(0),
             store,
+            ended: parking_lot::Mutex::new(EndedEpisodes::default()),
         }
     }
 
@@ -199,9 +213,61 @@ impl TaskHandle {
         }
     }
 
+    /// Whether episode `number` of `env` of `client` was already committed.
+    pub fn already_ended(&self, client: &str, env: u32, number: u64) -> bool {
+        let ended = self.ended.lock();
+        ended
+            .by_client
+            .get(client)
+            .and_then(|envs| envs.get(&env))
+            .is_some_and(|&n| n > number)
+    }
+
+    fn mark_ended(&self, client: &str, ends: &[(u32, u64)]) {
+        let mut ended = self.ended.lock();
+        let ended = &mut *ended;
+        if !ended.by_client.contains_key(client) {
+            if ended.order.len() >= MAX_REMEMBERED_CLIENTS {
+                if let Some(old) = ended.order.pop_front() {
+                    ended.by_client.remove(&old);
+                }
+            }
+            let key: Arc<str> = Arc::from(client);
+            ended.order.push_back(key.clone());
+            ended.by_client.insert(key, Default::default());
+        }
+        if let Some(envs) = ended.by_client.get_mut(client) {
+            for &(env, number) in ends {
+                let n = envs.entry(env).or_insert(0);
+                *n = (*n).max(number + 1);
+            }
+        }
+    }
+
+    /// [`TaskHandle::commit`] for the episode ends of a batch: with `marks = (client,
+    /// [(env, episode)])` they are remembered as committed (while the writer lock is
+    /// still held) once the store acknowledged them.
+    pub async fn commit_ends(
+        &self,
+        writer: Writer,
+        ops: Vec<PoolOp>,
+        marks: Option<(&str, &[(u32, u64)])>,
+    ) -> Result<Committed, Error> {
+        let committed = self.commit_locked(&writer, ops).await?;
+        if let Some((client, ends)) = marks {
+            self.mark_ended(client, ends);
+        }
+        drop(writer);
+        Ok(committed)
+    }
+
     /// Commits `ops` (planned against `writer.base()`) to the store, then publishes the
     /// pool the store returns. Nothing is published if the store fails.
     pub async fn commit(&self, writer: Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
+        self.commit_locked(&writer, ops).await
+    }
+
+    async fn commit_locked(&self, writer: &Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
         if ops.is_empty() {
             return Ok(Committed {
                 pool: writer.base.clone(),

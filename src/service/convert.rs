@@ -6,7 +6,7 @@ use crate::core::{ActionCount, ActionSeq, Pool, TaskConfig, TaskConfigInput, Tra
 use crate::error::Error;
 use crate::proto;
 use crate::registry::TaskHandle;
-use crate::session::{Batch, Shaped};
+use crate::session::{Batch, Resume, Shaped};
 
 macro_rules! config_conversions {
     ($($(#[doc = $doc:literal])* $name:ident : $ty:ty,)*
@@ -128,6 +128,19 @@ pub fn batch_view<'a>(b: &'a proto::StepBatch, scores: &'a mut Vec<(u32, f64)>) 
         episode_scores: scores,
         abandon: &b.abandon,
     }
+}
+
+/// Borrowed views of `Open.resume` for the session layer.
+pub fn resume_views(r: &[proto::EnvResume]) -> Vec<Resume<'_>> {
+    r.iter()
+        .map(|r| Resume {
+            env_id: r.env_id,
+            actions: &r.actions,
+            action_vectors: &r.action_vectors,
+            reward_sum: r.reward_sum,
+            episode: r.episode,
+        })
+        .collect()
 }
 
 /// The answer to one batch.

@@ -7,7 +7,7 @@ use tokio::sync::mpsc::Sender;
 use tokio_util::sync::CancellationToken;
 use tonic::{Status, Streaming};
 
-use super::convert::{batch_view, shaped_proto, task_proto};
+use super::convert::{batch_view, resume_views, shaped_proto, task_proto};
 use super::status::remap_decode_status;
 use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
@@ -59,9 +59,12 @@ async fn serve(
 ) -> End {
     let mut session = match next(&mut inbound, &shutdown).await {
         Ok(shape_request::Kind::Open(o)) => {
+            let resume = resume_views(&o.resume);
             let req = OpenRequest {
                 task_id: &o.task_id,
                 num_envs: o.num_envs,
+                resume: &resume,
+                client_id: &o.client_id,
             };
             match StreamSession::open(&registry, &req) {
                 Ok(s) => s,

@@ -20,7 +20,7 @@ use std::sync::Arc;
 
 pub use batch::{Batch, Entries};
 
-use crate::core::{Episode, KnnScratch, Pool, StepInput, StepOutput};
+use crate::core::{ActionCount, Episode, KnnScratch, Pool, StepInput, StepOutput};
 use crate::error::Error;
 use crate::limits::Limits;
 use crate::registry::{Registry, StreamGuard, TaskHandle, Writer};
@@ -31,12 +31,31 @@ use crate::store::PoolOp;
 pub const HEAVY_BATCH_WORK: usize = 1 << 20;
 
 /// What opens a session (the proto's `Open`).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 pub struct OpenRequest<'a> {
     /// The task to shape on.
     pub task_id: &'a str,
     /// Environments of the stream, numbered `0..num_envs`.
     pub num_envs: u32,
+    /// Episodes to resume (SPEC §9).
+    pub resume: &'a [Resume<'a>],
+    /// Names the client across its streams; empty for none.
+    pub client_id: &'a str,
+}
+
+/// One environment's current episode, resumed on a new stream (the proto's `EnvResume`).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Resume<'a> {
+    /// The environment, `< num_envs`.
+    pub env_id: u32,
+    /// Discrete tasks: every action of the episode so far.
+    pub actions: &'a [u32],
+    /// Continuous tasks: t × action_dim floats.
+    pub action_vectors: &'a [f32],
+    /// Σ R of the episode so far.
+    pub reward_sum: f64,
+    /// Episodes this environment has ended since the client first opened.
+    pub episode: u64,
 }
 
 /// The answer to one batch: one output per entry, in request order, and the task's pool
@@ -55,6 +74,10 @@ pub struct StreamSession {
     _guard: StreamGuard,
     limits: Limits,
     episodes: Vec<Episode>,
+    /// Per env: the number of the current episode (episodes ended before it).
+    episode_no: Vec<u64>,
+    /// The client's id, if it gave one: episode ends are then committed at most once.
+    client_id: Option<Arc<str>>,
     scratch: KnnScratch,
     outputs: Vec<StepOutput>,
 }
@@ -115,10 +138,52 @@ impl StreamSession {
             )));
         }
         let task = registry.get(req.task_id)?;
+        let config = *task.config();
+        let mut episodes: Vec<Episode> = (0..req.num_envs)
+            .map(|_| Episode::new(config.action_space))
+            .collect();
+        let mut episode_no = vec![0; req.num_envs as usize];
+        let mut seen = vec![false; episodes.len()];
+        for (j, r) in req.resume.iter().enumerate() {
+            let field = format!("open.resume[{j}].");
+            match seen.get_mut(r.env_id as usize) {
+                None => {
+                    return Err(Error::invalid(
+                        format!("{field}env_id"),
+                        format!("env {} out of range: num_envs = {}", r.env_id, req.num_envs),
+                    ))
+                }
+                Some(s) if *s => {
+                    return Err(Error::invalid(
+                        format!("{field}env_id"),
+                        format!("env {} is resumed twice", r.env_id),
+                    ))
+                }
+                Some(s) => *s = true,
+            }
+            let actions = config
+                .action_space
+                .to_seq(
+                    r.actions.to_vec(),
+                    r.action_vectors.to_vec(),
+                    ActionCount::Any,
+                )
+                .map_err(|e| Error::invalid(e.field(&field), e.message))?;
+            if !r.reward_sum.is_finite() {
+                return Err(Error::invalid(
+                    format!("{field}reward_sum"),
+                    format!("must be finite, got {}", r.reward_sum),
+                ));
+            }
+            episodes[r.env_id as usize] =
+                Episode::resume(actions, r.reward_sum, config.max_trajectory_len);
+            episode_no[r.env_id as usize] = r.episode;
+        }
         let guard = task.open_stream()?;
-        let space = task.config().action_space;
         Ok(StreamSession {
-            episodes: (0..req.num_envs).map(|_| Episode::new(space)).collect(),
+            episodes,
+            episode_no,
+            client_id: (!req.client_id.is_empty()).then(|| Arc::from(req.client_id)),
             task,
             _guard: guard,
             limits: *registry.limits(),
@@ -148,6 +213,7 @@ impl StreamSession {
     fn drop_episodes(&mut self, envs: &[u32]) {
         let space = self.task.config().action_space;
         for &e in envs {
+            // An abandoned episode is not ended: its number is the next episode's.
             self.episodes[e as usize] = Episode::new(space);
         }
     }
@@ -165,6 +231,7 @@ impl StreamSession {
         let mut pool = self.task.snapshot();
         let mut writer: Option<Writer> = None;
         let mut ops = Vec::new();
+        let mut ended = Vec::new();
         let mut next = 0;
         loop {
             let stop = cpu(long, || {
@@ -175,7 +242,9 @@ impl StreamSession {
                 Stop::EpisodeEnd(i, end) => (i, end),
             };
             next = i + 1;
-            self.task.count_episode();
+            let env = entries[i].0;
+            let number = self.episode_no[env];
+            self.episode_no[env] += 1;
             if writer.is_none() {
                 // Plan this and every later episode end of the batch against the latest
                 // pool, privately, while holding the task's writer lock.
@@ -183,6 +252,15 @@ impl StreamSession {
                 pool = w.base().clone();
                 writer = Some(w);
             }
+            if let Some(client) = &self.client_id {
+                if self.task.already_ended(client, env as u32, number) {
+                    // A batch re-sent after its answer was lost (SPEC §9): this episode
+                    // end was committed before; it is shaped, but not offered again.
+                    continue;
+                }
+                ended.push((env as u32, number));
+            }
+            self.task.count_episode();
             if let Some(change) = pool.plan_offer(end.actions.clone(), end.score) {
                 Arc::make_mut(&mut pool).apply(&change);
             }
@@ -193,7 +271,8 @@ impl StreamSession {
         }
         self.task.count_steps(entries.len());
         if let Some(w) = writer {
-            pool = self.task.commit(w, ops).await?.pool;
+            let marks = self.client_id.as_deref().map(|c| (c, ended.as_slice()));
+            pool = self.task.commit_ends(w, ops, marks).await?.pool;
         }
         Ok(Shaped {
             outputs: &self.outputs,

@@ -158,6 +158,7 @@ impl Stream {
             kind: Some(shape_request::Kind::Open(proto::Open {
                 task_id: task_id.into(),
                 num_envs,
+                ..Default::default()
             })),
         })
         .await

@@ -544,22 +544,84 @@ class Open(_message.Message):
 
     TASK_ID_FIELD_NUMBER: _builtins.int
     NUM_ENVS_FIELD_NUMBER: _builtins.int
+    RESUME_FIELD_NUMBER: _builtins.int
+    CLIENT_ID_FIELD_NUMBER: _builtins.int
     task_id: _builtins.str
     num_envs: _builtins.int
     """>= 1."""
+    client_id: _builtins.str
+    """(v1.1) Names the client across its streams (e.g. a UUID; empty: none). With it, an
+    episode end is identified by (client_id, env_id, episode) and is committed to the
+    pool at most once, so a batch re-sent after a lost answer never stores an episode
+    twice.
+    """
+    @_builtins.property
+    def resume(self) -> _containers.RepeatedCompositeFieldContainer[Global___EnvResume]:
+        """(v1.1) Episodes to resume (SPEC §9): a client whose stream broke mid-episode lists,
+        per environment, the current episode's actions and reward sum; the server rebuilds
+        those episodes against the task's current pool, and every later shaped value is what
+        an uninterrupted stream would have returned. Environments not listed start new
+        episodes. Each env_id < num_envs, at most once.
+        """
+
     def __init__(
         self,
         *,
         task_id: _builtins.str = ...,
         num_envs: _builtins.int = ...,
+        resume: _abc.Iterable[Global___EnvResume] | None = ...,
+        client_id: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["num_envs", b"num_envs", "task_id", b"task_id"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["client_id", b"client_id", "num_envs", b"num_envs", "resume", b"resume", "task_id", b"task_id"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___Open: _TypeAlias = Open  # noqa: Y015
+
+@_typing.final
+class EnvResume(_message.Message):
+    """The state of one environment's current episode, for `Open.resume`."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ENV_ID_FIELD_NUMBER: _builtins.int
+    ACTIONS_FIELD_NUMBER: _builtins.int
+    ACTION_VECTORS_FIELD_NUMBER: _builtins.int
+    REWARD_SUM_FIELD_NUMBER: _builtins.int
+    EPISODE_FIELD_NUMBER: _builtins.int
+    env_id: _builtins.int
+    reward_sum: _builtins.float
+    """Sum of the episode's environment rewards so far (the default episode score). Finite."""
+    episode: _builtins.int
+    """Episodes this environment has ended since the client first opened (0 for the first)."""
+    @_builtins.property
+    def actions(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Discrete tasks: every action a_0 .. a_{t-1} of the episode so far (all of them, even
+        past max_trajectory_len).
+        """
+
+    @_builtins.property
+    def action_vectors(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """Continuous tasks: t x action_dim floats, row-major."""
+
+    def __init__(
+        self,
+        *,
+        env_id: _builtins.int = ...,
+        actions: _abc.Iterable[_builtins.int] | None = ...,
+        action_vectors: _abc.Iterable[_builtins.float] | None = ...,
+        reward_sum: _builtins.float = ...,
+        episode: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["action_vectors", b"action_vectors", "actions", b"actions", "env_id", b"env_id", "episode", b"episode", "reward_sum", b"reward_sum"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___EnvResume: _TypeAlias = EnvResume  # noqa: Y015
 
 @_typing.final
 class StepBatch(_message.Message):
