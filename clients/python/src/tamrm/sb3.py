@@ -19,19 +19,33 @@ limit from a real termination. Both are used here: a truncated step is sent as
 
 Each env's ``info`` gets ``original_reward``, ``knn_reward``, ``potential``,
 ``shaping_step``, ``knn_active`` and ``pool_version``. Episode statistics recorded by
-SB3's ``Monitor`` (below the ``VecEnv``) stay in terms of the original reward.
+SB3's ``Monitor`` (below the ``VecEnv``, as ``make_vec_env`` puts it) or by a
+``VecMonitor`` below this wrapper stay in terms of the original reward (``info["episode"]``,
+SB3's ``ep_rew_mean``); the shaped return and its parts are beside them, in
+``info["shaped_episode"]`` (``r``: the sum of R_meta, ``knn``: of alpha * r(t),
+``potential``: of beta * F, ``l``: the length). A ``VecMonitor`` above this wrapper is
+refused (it would record the shaped returns).
 """
 
 from __future__ import annotations
 
+import sys
 import warnings
+from types import FrameType
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 try:
-    from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+    from stable_baselines3.common.vec_env import (
+        VecCheckNan,
+        VecEnv,
+        VecEnvWrapper,
+        VecMonitor,
+        VecNormalize,
+        VecVideoRecorder,
+    )
     from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
 except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the install
     if (_missing.name or "").split(".")[0] not in ("stable_baselines3", "torch"):
@@ -91,6 +105,37 @@ def model_value_fn(model: Any) -> ValueFn:
     )
 
 
+_MONITOR_ABOVE = (
+    "VecMonitor above ShapedVecEnv would record the shaped rewards as the episode returns "
+    "(SB3's ep_rew_mean); put the monitor below it: ShapedVecEnv(VecMonitor(venv), session) "
+    "(make_vec_env already puts a Monitor in every env, so no VecMonitor is needed there)"
+)
+
+
+def _refuse_monitor_above() -> None:
+    """Raise if the ``env_is_wrapped`` call in progress comes from a ``VecMonitor`` being built.
+
+    ``VecMonitor.__init__`` asks the env below it whether it is wrapped in a ``Monitor``;
+    through any wrappers in between, the question reaches the :class:`ShapedVecEnv`.
+    """
+    frame: FrameType | None = sys._getframe(2)  # the caller of ShapedVecEnv.env_is_wrapped
+    while frame is not None and frame.f_code.co_name == "env_is_wrapped":
+        frame = frame.f_back
+    if (
+        frame is not None
+        and frame.f_code.co_name == "__init__"
+        and isinstance(frame.f_locals.get("self"), VecMonitor)
+    ):
+        raise ValueError(_MONITOR_ABOVE)
+
+
+def _keeps_observations(wrapper: VecEnv) -> bool:
+    """Whether an SB3 wrapper passes the observations through unchanged."""
+    if isinstance(wrapper, VecNormalize):
+        return not wrapper.norm_obs
+    return isinstance(wrapper, (VecMonitor, VecCheckNan, VecVideoRecorder))
+
+
 def _obs_batch(obs: VecEnvObs) -> ObsBatch:
     """The observations for the value helpers: arrays or dicts of arrays (a tuple: one array)."""
     return np.asarray(obs) if isinstance(obs, tuple) else obs
@@ -133,6 +178,19 @@ class ShapedVecEnv(VecEnvWrapper):
         self.score_key = score_key
         self._obs: ObsBatch | None = None
         self._actions: npt.NDArray[Any] | None = None
+        # Per env, the current episode's shaped return and its parts (info["shaped_episode"]).
+        self._episode = np.zeros((venv.num_envs, 4), dtype=np.float64)
+
+    def env_is_wrapped(self, wrapper_class: type[Any], indices: Any = None) -> list[bool]:
+        """Whether the sub-environments are wrapped in ``wrapper_class`` (SB3's query).
+
+        Raises:
+            ValueError: The query comes from a ``VecMonitor`` being put above this wrapper
+                (its episode returns would be the shaped ones).
+        """
+        _refuse_monitor_above()
+        wrapped: list[bool] = self.venv.env_is_wrapped(wrapper_class, indices)
+        return wrapped
 
     def bind_model(self, model: Any) -> ShapedVecEnv:
         """Use ``model``'s own value estimates for the potential term F.
@@ -141,14 +199,29 @@ class ShapedVecEnv(VecEnvWrapper):
         env to be built).
         Returns ``self``.
         """
-        self.value_fn = model_value_fn(model)
         get_env = getattr(model, "get_env", None)
-        if callable(get_env) and get_env() is not self:
+        env = get_env() if callable(get_env) else None
+        changing: list[str] = []
+        while isinstance(env, VecEnvWrapper) and env is not self:
+            if isinstance(env, VecMonitor):
+                raise ValueError(_MONITOR_ABOVE)
+            if not _keeps_observations(env):
+                changing.append(type(env).__name__)
+            env = env.venv
+        if env is not None and env is not self:
             warnings.warn(
-                "the model's env is not this ShapedVecEnv (is it wrapped further?): the "
-                "values are computed on this wrapper's observations",
+                "the model's env does not contain this ShapedVecEnv: the values are computed "
+                "on this wrapper's observations, not necessarily the model's",
                 stacklevel=2,
             )
+        elif changing:
+            warnings.warn(
+                f"the model's env wraps this ShapedVecEnv in {', '.join(changing)}, which "
+                "change the observations: the values are computed on this wrapper's "
+                "(unchanged) observations; make ShapedVecEnv the outermost wrapper",
+                stacklevel=2,
+            )
+        self.value_fn = model_value_fn(model)
         return self
 
     def close(self) -> None:
@@ -161,6 +234,7 @@ class ShapedVecEnv(VecEnvWrapper):
     def reset(self) -> VecEnvObs:
         """Reset every sub-environment; abandon the episodes that were in progress."""
         obs = self.venv.reset()
+        self._episode[:] = 0.0
         in_progress = self.session.episodes_in_progress
         if in_progress.any():
             self.session.abandon(np.flatnonzero(in_progress))
@@ -219,7 +293,26 @@ class ShapedVecEnv(VecEnvWrapper):
             episode_scores=scores or None,
             **values,
         )
+        cfg = self.session.config
+        self._episode += np.stack(
+            [
+                result.rewards,
+                cfg.alpha * result.knn_rewards,
+                cfg.beta * result.potentials,
+                np.ones(self.num_envs),
+            ],
+            axis=1,
+        )
         for i, info in enumerate(infos):
+            if dones[i]:
+                shaped_r, knn_part, potential_part, length = self._episode[i].tolist()
+                info["shaped_episode"] = {
+                    "r": shaped_r,
+                    "knn": knn_part,
+                    "potential": potential_part,
+                    "l": int(length),
+                }
+                self._episode[i] = 0.0
             info["original_reward"] = float(rewards[i])
             info["knn_reward"] = float(result.knn_rewards[i])
             info["potential"] = float(result.potentials[i])
