@@ -58,6 +58,12 @@ limits! {
     max_message_bytes: usize = 64 * 1024 * 1024, env "TAMRM_MAX_MESSAGE_BYTES";
     /// `pool_capacity` a task may ask for at most [default: 10000].
     max_pool_capacity: u32 = 10_000, env "TAMRM_MAX_POOL_CAPACITY";
+    /// Seconds a Shape stream may go without a client message (before its `Open`
+    /// included) before the server ends it with UNAVAILABLE; 0 never [default: 600].
+    stream_idle_timeout_secs: u64 = 600, env "TAMRM_STREAM_IDLE_TIMEOUT_SECS";
+    /// Seconds between HTTP/2 keepalive pings to each client, a connection that does not
+    /// answer within 20 s is closed; 0 disables them [default: 30].
+    keepalive_secs: u64 = 30, env "TAMRM_KEEPALIVE_SECS";
 }
 
 #[cfg(test)]

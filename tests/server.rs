@@ -1649,3 +1649,43 @@ async fn resume_and_abandon_travel_through_the_proto() {
         .unwrap();
     assert_eq!(b.steps, [1, 0], "env 1 was abandoned before the entries");
 }
+
+/// Streams that never send `Open`, or go quiet after it, are closed after
+/// `stream_idle_timeout_secs` with UNAVAILABLE, and stop counting as open.
+#[tokio::test]
+async fn idle_and_never_opened_streams_are_closed() {
+    let server = common::start_server(None, |s| s.limits.stream_idle_timeout_secs = 1).await;
+    let mut c = common::connect(server.addr()).await;
+    common::create(&mut c, "idle", common::discrete(2, 2, 2, 0, 1)).await;
+    let start = std::time::Instant::now();
+    let mut never = common::Stream::raw(&mut c).await.unwrap();
+    let (mut quiet, _) = common::Stream::open(&mut c, "idle", 1).await.unwrap();
+    common::wait_open_streams(&mut c, "idle", 1).await;
+    for s in [&mut never, &mut quiet] {
+        let e = tokio::time::timeout(std::time::Duration::from_secs(10), async {
+            loop {
+                match s.recv().await {
+                    Err(e) => return e,
+                    Ok(Some(_)) => continue,
+                    Ok(None) => panic!("stream ended without a status"),
+                }
+            }
+        })
+        .await
+        .expect("closed within 10 s");
+        assert_eq!(e.code(), tonic::Code::Unavailable);
+        assert!(
+            e.message().contains("stream_idle_timeout_secs"),
+            "{}",
+            e.message()
+        );
+    }
+    assert!(start.elapsed() >= std::time::Duration::from_millis(900));
+    common::wait_open_streams(&mut c, "idle", 0).await;
+    // An active stream is not closed: each message resets its timer.
+    let (mut busy, _) = common::Stream::open(&mut c, "idle", 1).await.unwrap();
+    for _ in 0..4 {
+        tokio::time::sleep(std::time::Duration::from_millis(400)).await;
+        busy.step(common::batch(&[0], &[0.0], &[])).await.unwrap();
+    }
+}

@@ -129,7 +129,10 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let reporter = health_reporter.clone();
     let closing = TaskTracker::new();
     let tracker = closing.clone();
+    let keepalive = settings.limits.keepalive_secs;
     let router = Server::builder()
+        .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
         .add_service(health)
         .add_service(reflection_v1)

@@ -2,6 +2,7 @@
 //! [`StreamSession`]: `Open`, then one `ShapedBatch` per `StepBatch`.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use tokio::sync::mpsc::Sender;
 use tokio_util::sync::CancellationToken;
@@ -29,15 +30,26 @@ impl From<Error> for End {
 }
 
 /// Reads the next client message, or ends the stream: at shutdown (only between
-/// batches, never in the middle of one), when the client half-closes, or on a transport
-/// error.
+/// batches, never in the middle of one), when the client half-closes, on a transport
+/// error, or after `idle` without a message.
 async fn next(
     inbound: &mut Streaming<ShapeRequest>,
     shutdown: &CancellationToken,
+    idle: Option<Duration>,
 ) -> Result<shape_request::Kind, End> {
+    let idle_timer = async {
+        match idle {
+            Some(d) => tokio::time::sleep(d).await,
+            None => std::future::pending().await,
+        }
+    };
     tokio::select! {
         biased;
         _ = shutdown.cancelled() => Err(Error::ShuttingDown.into()),
+        _ = idle_timer => Err(End::Fail(Status::unavailable(format!(
+            "stream idle for {}s without a message: closed by the server (stream_idle_timeout_secs); reconnect to go on",
+            idle.map_or(0, |d| d.as_secs())
+        )))),
         msg = inbound.message() => match msg {
             Ok(Some(ShapeRequest { kind: Some(kind) })) => Ok(kind),
             Ok(Some(ShapeRequest { kind: None })) => Err(Error::invalid(
@@ -57,7 +69,9 @@ async fn serve(
     mut inbound: Streaming<ShapeRequest>,
     tx: &Tx,
 ) -> End {
-    let mut session = match next(&mut inbound, &shutdown).await {
+    let secs = registry.limits().stream_idle_timeout_secs;
+    let idle = (secs > 0).then(|| Duration::from_secs(secs));
+    let mut session = match next(&mut inbound, &shutdown, idle).await {
         Ok(shape_request::Kind::Open(o)) => {
             let resume = resume_views(&o.resume);
             let req = OpenRequest {
@@ -87,7 +101,7 @@ async fn serve(
 
     let mut scores = Vec::new();
     loop {
-        let batch = match next(&mut inbound, &shutdown).await {
+        let batch = match next(&mut inbound, &shutdown, idle).await {
             Ok(shape_request::Kind::Steps(b)) => b,
             Ok(shape_request::Kind::Open(_)) => {
                 return Error::invalid("open", "the stream is already open; send steps").into()
