@@ -269,9 +269,16 @@ def test_server_rejection_surfaces_on_the_step(client: tamrm.Client, task_id: st
     before = client.get_task(task_id).stats
     s = client.session(task_id, 2)
     s.step([0, 1], [1.0, 1.0])
+    # A non-finite number is caught before sending: the session stays usable.
     with pytest.raises(tamrm.InvalidArgument) as err:
         s.step([0, 1], [math.nan, 1.0])
     assert "reward" in err.value.details
+    assert not s.closed
+    # A rejection by the server (a score on an entry that does not end its episode) ends
+    # the stream.
+    with pytest.raises(tamrm.InvalidArgument) as err:
+        s.step([0, 1], [1.0, 1.0], episode_scores={0: 1.0})
+    assert "episode_scores" in err.value.details
     assert s.closed
     with pytest.raises(tamrm.SessionClosed) as closed:
         s.step([0, 1], [1.0, 1.0])
@@ -440,8 +447,8 @@ def test_aio_client_and_session(server: tamrm.LocalServer, task_id: str) -> None
                         assert res.knn_active[e] == want["knn_active"]
                         assert res.knn_rewards[e] == pytest.approx(want["knn_reward"])
                         assert res.rewards[e] == pytest.approx(want["reward"], rel=1e-6)
-                with pytest.raises(tamrm.InvalidArgument):
-                    await s.step([0, 0], [math.nan, 0.0])
+                with pytest.raises(tamrm.InvalidArgument):  # rejected by the server
+                    await s.step([0, 0], [0.0, 0.0], episode_scores={1: 5.0})
                 with pytest.raises(tamrm.SessionClosed):
                     await s.step([0, 0], [0.0, 0.0])
             assert_pool_equal(await c.get_pool(task_id), ref)

@@ -1,10 +1,13 @@
 """Validation of a session step's arrays and their conversion to a columnar ``StepBatch``.
 
 Everything here runs before a request is sent: a wrong shape or dtype raises a
-``ValueError``/``TypeError`` naming the argument and nothing reaches the server. Value
-checks the server makes anyway (finiteness of rewards and values, scores on entries that
-do not end an episode when given as a mapping) are left to the server, whose
-``INVALID_ARGUMENT`` is raised as :class:`tamrm.InvalidArgument`.
+``ValueError``/``TypeError`` naming the argument and nothing reaches the server. A
+non-finite number (a NaN from a diverging critic), or one too large for the 32-bit float
+it is sent as (values, Q-values, action vectors), raises :class:`tamrm.InvalidArgument`
+naming the argument, the row and the value as the caller gave it; nothing is sent, so the
+session stays usable (SPEC §8: the server would reject the batch anyway, but its status
+ends the stream). The server's other value checks (scores on entries that do not end an
+episode when given as a mapping) are left to it.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from tamrm._errors import InvalidArgument
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import TaskConfig
 
@@ -69,12 +73,42 @@ def _check_shape(name: str, arr: npt.NDArray[Any], shape: tuple[int, ...]) -> No
         raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
 
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def _real(name: str, value: object, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
     arr = _array(name, value)
     if arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must hold real numbers (int or float), got dtype {arr.dtype}")
     _check_shape(name, arr, shape)
     return arr.astype(np.float64, copy=False)
+
+
+def _finite(name: str, arr: npt.NDArray[Any], float32: bool, rows: list[int] | None = None) -> None:
+    """Raise :class:`InvalidArgument` for the first entry that is not finite (as sent).
+
+    ``float32``: the field is sent as a 32-bit float, so a finite entry beyond its range
+    (e.g. ``1e39``) is reported as given rather than as the ``inf`` it would become.
+    ``rows``: the row of each entry of a 1-D ``arr``, if not its position.
+    """
+    wrong = ~np.isfinite(arr)
+    if float32:
+        wrong |= np.abs(arr) > _FLOAT32_MAX
+    bad = np.argwhere(wrong)
+    if bad.size == 0:
+        return
+    index = tuple(int(i) for i in bad[0])
+    value = float(arr[index])
+    if rows is not None:
+        index = (rows[index[0]],)
+    where = f"{name}[{', '.join(map(str, index))}]"
+    if np.isfinite(value):
+        why = f"does not fit the 32-bit float it is sent as (|x| <= {_FLOAT32_MAX:.4g})"
+    else:
+        why = "is not finite"
+    raise InvalidArgument(
+        f"{where} = {value!r} {why}; nothing was sent, the session is still usable"
+    )
 
 
 def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
@@ -105,6 +139,7 @@ def _add_actions(batch: pb.StepBatch, config: TaskConfig, value: object, size: i
         raise TypeError(f"actions must hold {what}, got dtype {arr.dtype}")
     _check_shape("actions", arr, shape)
     if not config.discrete:
+        _finite("actions", arr.astype(np.float64, copy=False), float32=True)
         batch.action_vectors.extend(arr.astype(np.float32, copy=False).ravel().tolist())
         return
     if arr.size:
@@ -138,17 +173,24 @@ def _add_values(batch: pb.StepBatch, config: TaskConfig, step: StepInput, size: 
         raise TypeError("q_values and next_q_values must be given together")
     if step.values is not None and step.q_values is not None:
         raise TypeError("give either values/next_values or q_values/next_q_values, not both")
+    columns: list[tuple[str, object, Any, tuple[int, ...]]] = []
     if step.values is not None:
-        batch.values.extend(_real("values", step.values, (size,)).tolist())
-        batch.next_values.extend(_real("next_values", step.next_values, (size,)).tolist())
+        columns += [
+            ("values", step.values, batch.values, (size,)),
+            ("next_values", step.next_values, batch.next_values, (size,)),
+        ]
     if step.q_values is not None:
         if not config.discrete:
             raise ValueError("q_values are only accepted by discrete tasks (num_actions > 0)")
-        shape = (size, config.num_actions)
-        batch.q_values.extend(_real("q_values", step.q_values, shape).ravel().tolist())
-        batch.next_q_values.extend(
-            _real("next_q_values", step.next_q_values, shape).ravel().tolist()
-        )
+        shape: tuple[int, ...] = (size, config.num_actions)
+        columns += [
+            ("q_values", step.q_values, batch.q_values, shape),
+            ("next_q_values", step.next_q_values, batch.next_q_values, shape),
+        ]
+    for name, value, field, shape in columns:
+        arr = _real(name, value, shape)
+        _finite(name, arr, float32=True)
+        field.extend(arr.ravel().tolist())
 
 
 def _scores(
@@ -178,12 +220,14 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
     Raises:
         TypeError: An argument has the wrong dtype, or only one of a pair was given.
         ValueError: An argument has the wrong shape or an out-of-range entry.
+        InvalidArgument: A number is not finite or does not fit its 32-bit field.
     """
     given_ids = _env_ids(step.env_ids, num_envs)
     ids = np.arange(num_envs, dtype=np.int64) if given_ids is None else given_ids
     size = int(ids.shape[0])
 
     rew = _real("rewards", step.rewards, (size,))
+    _finite("rewards", rew, float32=False)
     term = _flags("terminated", step.terminated, size)
     trunc = _flags("truncated", step.truncated, size)
     done = term | trunc
@@ -198,7 +242,9 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
     _add_actions(batch, config, step.actions, size)
     _add_values(batch, config, step, size)
     if step.episode_scores is not None:
-        for key, score in _scores(step.episode_scores, done).items():
+        scores = _scores(step.episode_scores, done)
+        _finite("episode_scores", np.array(list(scores.values())), False, list(scores))
+        for key, score in scores.items():
             batch.episode_scores[key] = score
 
     return PreparedBatch(request=pb.ShapeRequest(steps=batch), env_ids=ids, done=done)

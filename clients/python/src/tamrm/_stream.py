@@ -161,7 +161,9 @@ class SessionCore(Generic[_R]):
         Raises:
             TypeError, ValueError: An argument has the wrong dtype or shape (nothing was
                 sent; the session stays usable).
-            InvalidArgument: The server rejected the batch (e.g. a non-finite reward).
+            InvalidArgument: A number is not finite or too large for its 32-bit field
+                (caught before sending: nothing was sent, the session stays usable), or
+                the server rejected the batch (e.g. a score on a non-final entry).
             TaskNotFound: The task was deleted.
             SessionClosed: The session was closed or an earlier step failed.
 
