@@ -33,6 +33,22 @@ def test_cartpole_example_quick(server_binary: str) -> None:
     assert "episodes" in out
 
 
+def test_cleanrl_ppo_example_quick(server_binary: str) -> None:
+    out = _run([str(CLIENT / "examples" / "cleanrl_ppo.py"), "--quick"], server_binary)
+    if "tensorboard not installed" in out:  # else the scalars go to runs/
+        lines = [line for line in out.splitlines() if line.startswith("step ")]
+        assert len(lines) == 3, out  # one line per update
+        for key in ("shaping/R=", "shaping/alpha_r=", "shaping/beta_F=", "shaping/pool_size="):
+            assert key in lines[-1], out
+    assert "episodes, last-20 mean return" in out
+
+
+def test_sb3_dqn_example_quick(server_binary: str) -> None:
+    out = _run([str(CLIENT / "examples" / "sb3_dqn.py"), "--quick"], server_binary)
+    assert "Q(s0, .) = [" in out, out
+    assert "(unshaped, pool untouched)" in out, out
+
+
 def test_overhead_benchmark_smoke(server_binary: str) -> None:
     out = _run(
         [
