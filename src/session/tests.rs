@@ -286,3 +286,6 @@ async fn gated_potential_counts_only_where_knn_is_active() {
 
 /// Resume (SPEC §9) and the no-double-commit rule.
 mod resume;
+
+/// Arbitrary, mostly invalid batches.
+mod props;
