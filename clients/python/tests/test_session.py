@@ -274,15 +274,13 @@ def test_server_rejection_surfaces_on_the_step(client: tamrm.Client, task_id: st
         s.step([0, 1], [math.nan, 1.0])
     assert "reward" in err.value.details
     assert not s.closed
-    # A rejection by the server (a score on an entry that does not end its episode) ends
-    # the stream.
+    # A rejection by the server (a score on an entry that does not end its episode) changes
+    # nothing (SPEC §8): the session goes on on a new stream, its episodes resumed (§9).
     with pytest.raises(tamrm.InvalidArgument) as err:
         s.step([0, 1], [1.0, 1.0], episode_scores={0: 1.0})
     assert "episode_scores" in err.value.details
-    assert s.closed
-    with pytest.raises(tamrm.SessionClosed) as closed:
-        s.step([0, 1], [1.0, 1.0])
-    assert isinstance(closed.value.__cause__, tamrm.InvalidArgument)
+    assert not s.closed
+    assert s.step([0, 1], [1.0, 1.0]).steps.tolist() == [1, 1]
     s.close()
     # A score on an entry that does not end an episode: the whole batch is rejected,
     # including env 0's episode end.
@@ -449,8 +447,9 @@ def test_aio_client_and_session(server: tamrm.LocalServer, task_id: str) -> None
                         assert res.rewards[e] == pytest.approx(want["reward"], rel=1e-6)
                 with pytest.raises(tamrm.InvalidArgument):  # rejected by the server
                     await s.step([0, 0], [0.0, 0.0], episode_scores={1: 5.0})
-                with pytest.raises(tamrm.SessionClosed):
-                    await s.step([0, 0], [0.0, 0.0])
+                # Nothing changed (SPEC §8): the episodes go on, on a resumed stream (§9).
+                assert not s.closed
+                assert (await s.step([0, 0], [0.0, 0.0])).steps.tolist() == [0, 4]
             assert_pool_equal(await c.get_pool(task_id), ref)
             s2 = await c.session(task_id, 1)
             await s2.step([1], [1.0])

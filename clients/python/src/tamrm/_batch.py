@@ -51,6 +51,10 @@ class PreparedBatch:
     request: pb.ShapeRequest
     env_ids: npt.NDArray[np.int64]
     done: npt.NDArray[np.bool_]
+    #: The rows' actions (``(B,)`` integers or ``(B, action_dim)`` floats as sent) and
+    #: environment rewards, kept by the session to resume its episodes (SPEC §9).
+    actions: npt.NDArray[Any]
+    rewards: npt.NDArray[np.float64]
 
     @property
     def size(self) -> int:
@@ -126,8 +130,13 @@ def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
     return arr.astype(np.bool_, copy=False)
 
 
-def _add_actions(batch: pb.StepBatch, config: TaskConfig, value: object, size: int) -> None:
-    """Check the actions against the task and write them to ``actions``/``action_vectors``."""
+def _add_actions(
+    batch: pb.StepBatch, config: TaskConfig, value: object, size: int
+) -> npt.NDArray[Any]:
+    """Check the actions against the task, write them to ``actions``/``action_vectors``.
+
+    Returns the actions as sent (``int64`` or ``float32``).
+    """
     arr = _array("actions", value)
     shape: tuple[int, ...]
     if config.discrete:
@@ -140,14 +149,17 @@ def _add_actions(batch: pb.StepBatch, config: TaskConfig, value: object, size: i
     _check_shape("actions", arr, shape)
     if not config.discrete:
         _finite("actions", arr.astype(np.float64, copy=False), float32=True)
-        batch.action_vectors.extend(arr.astype(np.float32, copy=False).ravel().tolist())
-        return
+        vectors = arr.astype(np.float32, copy=False)
+        batch.action_vectors.extend(vectors.ravel().tolist())
+        return vectors
     if arr.size:
         lo, hi = int(arr.min()), int(arr.max())
         if lo < 0 or hi >= config.num_actions:
             bad = lo if lo < 0 else hi
             raise ValueError(f"actions must be in 0..{config.num_actions - 1}, got {bad}")
-    batch.actions.extend(arr.astype(np.int64, copy=False).tolist())
+    ints = arr.astype(np.int64, copy=False)
+    batch.actions.extend(ints.tolist())
+    return ints
 
 
 def _env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | None:
@@ -239,7 +251,7 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
         batch.terminated.extend(term.tolist())
     if step.truncated is not None and trunc.any():
         batch.truncated.extend(trunc.tolist())
-    _add_actions(batch, config, step.actions, size)
+    actions = _add_actions(batch, config, step.actions, size)
     _add_values(batch, config, step, size)
     if step.episode_scores is not None:
         scores = _scores(step.episode_scores, done)
@@ -247,7 +259,13 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
         for key, score in scores.items():
             batch.episode_scores[key] = score
 
-    return PreparedBatch(request=pb.ShapeRequest(steps=batch), env_ids=ids, done=done)
+    return PreparedBatch(
+        request=pb.ShapeRequest(steps=batch),
+        env_ids=ids,
+        done=done,
+        actions=actions,
+        rewards=rew,
+    )
 
 
 def prepare_trajectory(actions: npt.ArrayLike, score: float) -> pb.Trajectory:

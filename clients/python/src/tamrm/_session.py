@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import sys
 import threading
@@ -89,7 +90,14 @@ class Session(SessionCore[StepResult], Closing):
         if isinstance(prepared, StepResult):
             return prepared
         self._requests.put(prepared.request)
-        resp = self._receive()
+        try:
+            resp = self._receive()
+        except TamrmError as err:
+            if self._rejected(err):
+                # The batch changed nothing: go on on a new stream with every episode resumed.
+                with contextlib.suppress(TamrmError):
+                    self._open()
+            raise
         try:
             return self._shaped(resp, prepared)
         except TamrmError as err:

@@ -8,6 +8,7 @@ messages (blocking or awaiting).
 
 from __future__ import annotations
 
+import uuid
 from collections.abc import Mapping
 from typing import Any, Generic, TypeVar
 
@@ -67,6 +68,13 @@ class SessionCore(Generic[_R]):
         self._pool_version = 0
         self._closed = True
         self._error = None
+        # What resuming the episodes on a new stream takes (SPEC §9): per env, the current
+        # episode's actions and reward sum, and the number of episodes it has ended; the
+        # client id makes a re-opened stream's episode ends count once.
+        self._client_id = uuid.uuid4().hex
+        self._episode_actions: list[list[Any]] = [[] for _ in range(self.num_envs)]
+        self._reward_sums = np.zeros(self.num_envs, dtype=np.float64)
+        self._episodes_ended = np.zeros(self.num_envs, dtype=np.int64)
         self._client = client
         self._stub: pb_grpc.ShapingStub = client._stub
         self._metadata: tuple[tuple[str, str], ...] | None = client._metadata
@@ -167,8 +175,11 @@ class SessionCore(Generic[_R]):
             TaskNotFound: The task was deleted.
             SessionClosed: The session was closed or an earlier step failed.
 
-            After a server error the stream is closed; open a new session (or call
-            :meth:`restart`) to continue.
+            A batch the server rejects (``InvalidArgument``) changes nothing (SPEC §8):
+            the session re-opens its stream, resuming every episode in progress (SPEC
+            §9), before raising, so the next step goes on as if the bad batch had never
+            been sent. After any other server error the stream is closed; open a new
+            session (or call :meth:`restart`) to continue.
         """
         return self._exchange(
             StepInput(
@@ -214,7 +225,9 @@ class SessionCore(Generic[_R]):
         for env in ids:
             if env not in self._abandon_pending:
                 self._abandon_pending.append(env)
+            self._episode_actions[env] = []
         self._episode_steps[ids] = 0
+        self._reward_sums[ids] = 0.0
 
     def _exchange(self, step: StepInput) -> _R:
         """Send the step's batch (from :meth:`_prepare`) and decode the answer (:meth:`_shaped`)."""
@@ -228,15 +241,50 @@ class SessionCore(Generic[_R]):
             raise err from self._error
 
     def _open_request(self) -> pb.ShapeRequest:
-        return pb.ShapeRequest(open=pb.Open(task_id=self.task_id, num_envs=self.num_envs))
+        """``Open``, resuming every env's current episode (none on a first open, SPEC §9).
+
+        Envs that have ended episodes are listed even between episodes, so that the
+        server goes on numbering their episode ends (``EnvResume.episode``).
+        """
+        resume = []
+        for env in range(self.num_envs):
+            actions = self._episode_actions[env]
+            if not actions and not self._episodes_ended[env]:
+                continue
+            item = pb.EnvResume(
+                env_id=env,
+                reward_sum=float(self._reward_sums[env]),
+                episode=int(self._episodes_ended[env]),
+            )
+            if actions and np.ndim(actions[0]) > 0:
+                item.action_vectors.extend(np.concatenate(actions).tolist())
+            else:
+                item.actions.extend(actions)
+            resume.append(item)
+        return pb.ShapeRequest(
+            open=pb.Open(
+                task_id=self.task_id,
+                num_envs=self.num_envs,
+                client_id=self._client_id,
+                resume=resume,
+            )
+        )
+
+    def _rejected(self, err: TamrmError) -> bool:
+        """Whether ``err`` rejected one batch and changed nothing else (SPEC §8).
+
+        The front-end then re-opens the stream, resuming every episode, before raising it.
+        """
+        return bool(err.code == grpc.StatusCode.INVALID_ARGUMENT)
 
     def _opened(self, resp: pb.ShapeResponse) -> None:
         if resp.WhichOneof("kind") != "opened":
             raise TamrmError(f"expected 'opened' as the first Shape response, got {resp}")
         self.task = Task._from_pb(resp.opened)
         self._pool_version = self.task.stats.pool_version
-        self._episode_steps[:] = 0
-        self._abandon_pending.clear()  # a new stream: every episode starts anew anyway
+        # The resumed episodes go on where they were; the others start anew.
+        self._episode_steps[:] = [len(actions) for actions in self._episode_actions]
+        self._abandon_pending.clear()  # sent envs were not resumed: they start anew
         self._abandon_unconfirmed[:] = False
         self._closed = False
         self._error = None
@@ -274,12 +322,25 @@ class SessionCore(Generic[_R]):
             )
         del self._abandon_pending[: len(prepared.request.steps.abandon)]
         self._confirm_abandons(result)
+        self._track(prepared)
         # Rows of one env come in order, so the last assignment wins as it should.
         self._episode_steps[env_ids] = result.steps + 1
         self._episode_steps[env_ids[done]] = 0
         self._episode_steps[self._abandon_pending] = 0  # abandoned since this batch was sent
         self._pool_version = result.pool_version
         return result
+
+    def _track(self, prepared: PreparedBatch) -> None:
+        """Record an answered batch's actions and rewards in each env's current episode."""
+        actions = prepared.actions.tolist()
+        for row, env in enumerate(prepared.env_ids.tolist()):
+            if prepared.done[row]:
+                self._episode_actions[env] = []
+                self._reward_sums[env] = 0.0
+                self._episodes_ended[env] += 1
+            else:
+                self._episode_actions[env].append(actions[row])
+                self._reward_sums[env] += prepared.rewards[row]
 
     def _confirm_abandons(self, result: StepResult) -> None:
         """Check that the first entry of each abandoned env started a new episode.
@@ -313,6 +374,9 @@ class SessionCore(Generic[_R]):
             return False
         self._closed = True
         self._episode_steps[:] = 0
+        # A closed stream's episodes are discarded (SPEC §6): nothing to resume.
+        self._episode_actions = [[] for _ in range(self.num_envs)]
+        self._reward_sums[:] = 0.0
         return True
 
 

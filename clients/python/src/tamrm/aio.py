@@ -17,6 +17,7 @@ this module only awaits them.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Awaitable, Generator
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -117,8 +118,15 @@ class AsyncSession(SessionCore[Awaitable[StepResult]], AsyncClosing):
         prepared = self._prepare(step)
         if isinstance(prepared, StepResult):
             return prepared
-        await self._write(prepared.request)
-        resp = await self._read()
+        try:
+            await self._write(prepared.request)
+            resp = await self._read()
+        except TamrmError as err:
+            if self._rejected(err):
+                # The batch changed nothing: go on on a new stream with every episode resumed.
+                with contextlib.suppress(TamrmError):
+                    await self.open()
+            raise
         try:
             return self._shaped(resp, prepared)
         except TamrmError as err:
