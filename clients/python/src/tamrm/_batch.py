@@ -23,7 +23,7 @@ from tamrm._errors import InvalidArgument
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import TaskConfig
 
-__all__ = ["PreparedBatch", "StepInput", "prepare_batch", "prepare_trajectory"]
+__all__ = ["PreparedBatch", "StepInput", "abandon_ids", "prepare_batch", "prepare_trajectory"]
 
 _UINT32_MAX = 2**32 - 1
 
@@ -289,3 +289,25 @@ def prepare_trajectory(actions: npt.ArrayLike, score: float) -> pb.Trajectory:
         "actions must be a 1-D integer array (discrete task) or a 2-D real array "
         f"(L, action_dim) (continuous task), got dtype {arr.dtype} shape {arr.shape}"
     )
+
+
+def abandon_ids(value: npt.ArrayLike, num_envs: int) -> list[int]:
+    """The ``abandon`` argument checked: integers, each in ``0..num_envs-1``, none twice."""
+    arr = np.atleast_1d(np.asarray(value))
+    if arr.size == 0:
+        return []
+    if arr.dtype.kind not in "iu":
+        raise TypeError(f"abandon: env ids must be integers, got dtype {arr.dtype}")
+    if arr.ndim != 1:
+        raise ValueError(f"abandon: env ids must be one-dimensional, got shape {arr.shape}")
+    ids: list[int] = arr.astype(np.int64).tolist()
+    seen: set[int] = set()
+    for env in ids:
+        if not 0 <= env < num_envs:
+            raise ValueError(
+                f"abandon: env id {env} is not in 0..{num_envs - 1} (num_envs={num_envs})"
+            )
+        if env in seen:
+            raise ValueError(f"abandon: env {env} is listed twice")
+        seen.add(env)
+    return ids

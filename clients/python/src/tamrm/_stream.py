@@ -16,7 +16,7 @@ import grpc
 import numpy as np
 import numpy.typing as npt
 
-from tamrm._batch import PreparedBatch, StepInput, prepare_batch
+from tamrm._batch import PreparedBatch, StepInput, abandon_ids, prepare_batch
 from tamrm._errors import SessionClosed, TamrmError
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
@@ -221,7 +221,7 @@ class SessionCore(Generic[_R]):
             SessionClosed: The session is closed.
         """
         self._check_open()
-        ids = _abandon_ids(env_ids, self.num_envs)
+        ids = abandon_ids(env_ids, self.num_envs)
         for env in ids:
             if env not in self._abandon_pending:
                 self._abandon_pending.append(env)
@@ -385,25 +385,3 @@ def _reopen(client: Any, task_id: str, num_envs: int) -> Any:
     session = client.session(task_id, num_envs)
     session._unpickled = True
     return session
-
-
-def _abandon_ids(value: npt.ArrayLike, num_envs: int) -> list[int]:
-    """The ``abandon`` argument checked: integers, each in ``0..num_envs-1``, none twice."""
-    arr = np.atleast_1d(np.asarray(value))
-    if arr.size == 0:
-        return []
-    if arr.dtype.kind not in "iu":
-        raise TypeError(f"abandon: env ids must be integers, got dtype {arr.dtype}")
-    if arr.ndim != 1:
-        raise ValueError(f"abandon: env ids must be one-dimensional, got shape {arr.shape}")
-    ids: list[int] = arr.astype(np.int64).tolist()
-    seen: set[int] = set()
-    for env in ids:
-        if not 0 <= env < num_envs:
-            raise ValueError(
-                f"abandon: env id {env} is not in 0..{num_envs - 1} (num_envs={num_envs})"
-            )
-        if env in seen:
-            raise ValueError(f"abandon: env {env} is listed twice")
-        seen.add(env)
-    return ids

@@ -59,7 +59,7 @@ except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the in
 
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
-from tamrm.gym import check_session, close_session
+from tamrm._wrapping import check_session, close_session
 
 __all__ = ["ShapedVecEnv", "model_value_fn"]
 
