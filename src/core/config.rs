@@ -157,8 +157,11 @@ macro_rules! define_config_structs {
             }
 
             /// The fields that differ, as `name: existing X, requested Y`, in the user's
-            /// terms (values, not Rust's `Option`s).
-            pub fn diff(&self, requested: &TaskConfig) -> Vec<String> {
+            /// terms (values, not Rust's `Option`s). `sent` is the input `requested` was
+            /// resolved from: a differing field it left unset is marked as a default, so
+            /// the user learns why a field they never sent is named.
+            pub fn diff(&self, requested: &TaskConfig, sent: &TaskConfigInput) -> Vec<String> {
+                let default = |was_sent: bool| if was_sent { "" } else { " (not sent: the default)" };
                 let mut out = Vec::new();
                 let (a, b) = (self.action_space, requested.action_space);
                 if a.num_actions() != b.num_actions() {
@@ -175,14 +178,16 @@ macro_rules! define_config_structs {
                 }
                 $(if !self.$name.same_bits(&requested.$name) {
                     out.push(format!(
-                        "{}: existing {}, requested {}",
-                        stringify!($name), self.$name, requested.$name
+                        "{}: existing {}, requested {}{}",
+                        stringify!($name), self.$name, requested.$name,
+                        default(sent.$name.is_some())
                     ));
                 })*
                 $(if !self.$new.same_bits(&requested.$new) {
                     out.push(format!(
-                        "{}: existing {}, requested {}",
-                        stringify!($new), self.$new, requested.$new
+                        "{}: existing {}, requested {}{}",
+                        stringify!($new), self.$new, requested.$new,
+                        default(sent.$new.is_some())
                     ));
                 })*
                 out

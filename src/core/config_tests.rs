@@ -34,7 +34,7 @@ fn same_as_and_diff_see_every_field() {
     other.alpha = 0.5;
     assert!(!base.same_as(&other));
     assert_eq!(
-        base.diff(&other),
+        base.diff(&other, &other.to_input()),
         vec![
             "alpha: existing 0.8, requested 0.5".to_string(),
             "gate_potential: existing false, requested true".to_string()

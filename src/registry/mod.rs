@@ -86,7 +86,7 @@ impl Registry {
             } else {
                 Err(Error::AlreadyExists {
                     id: id.to_string(),
-                    detail: existing.config().diff(&config).join("; "),
+                    detail: existing.config().diff(&config, input).join("; "),
                 })
             };
         }
