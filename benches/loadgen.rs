@@ -61,6 +61,7 @@ async fn drive(
         kind: Some(shape_request::Kind::Open(proto::Open {
             task_id: task,
             num_envs: envs,
+            ..Default::default()
         })),
     })
     .await
