@@ -25,12 +25,20 @@ SB3's ``ep_rew_mean``); the shaped return and its parts are beside them, in
 ``info["shaped_episode"]`` (``r``: the sum of R_meta, ``knn``: of alpha * r(t),
 ``potential``: of beta * F, ``l``: the length). A ``VecMonitor`` above this wrapper is
 refused (it would record the shaped returns).
+
+The bound model's critic is evaluated once per observation (see :class:`ModelValueFn`),
+with the same values as evaluating V(s) and V(s') on every step. :class:`ShapingLogger`
+records the shaped parts in the model's logger::
+
+    model.learn(100_000, callback=tamrm.sb3.ShapingLogger())
 """
 
 from __future__ import annotations
 
+import itertools
 import sys
 import warnings
+from dataclasses import dataclass
 from types import FrameType
 from typing import Any
 
@@ -38,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 try:
+    from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import (
         VecCheckNan,
         VecEnv,
@@ -61,10 +70,53 @@ from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
 from tamrm._wrapping import check_session, close_session
 
-__all__ = ["ShapedVecEnv", "model_value_fn"]
+__all__ = ["ModelValueFn", "ShapedVecEnv", "ShapingLogger", "ShapingStats", "model_value_fn"]
 
 
-def model_value_fn(model: Any) -> ValueFn:
+class ModelValueFn:
+    """A Stable-Baselines3 model's own value estimates as a ``value_fn`` (:func:`model_value_fn`).
+
+    Calling it evaluates the model's current policy (``model.policy``) on a batch of
+    observations; :meth:`version` tells :class:`ShapedVecEnv` when values it computed
+    earlier may be stale.
+    """
+
+    def __init__(self, model: Any) -> None:
+        import torch
+
+        policy = model.policy
+        if not hasattr(policy, "q_net") and not hasattr(policy, "predict_values"):
+            raise TypeError(
+                f"{type(model).__name__}: its policy has neither q_net (DQN) nor "
+                "predict_values (A2C/PPO); pass your own value_fn"
+            )
+        self.model = model
+        self._no_grad = torch.no_grad
+
+    def __call__(self, obs: ObsBatch) -> npt.NDArray[np.float64]:
+        """Q(s, ·) ``(B, num_actions)`` with a Q-network, else V(s) ``(B,)``."""
+        policy = self.model.policy
+        tensor, _ = policy.obs_to_tensor(obs)
+        with self._no_grad():
+            if hasattr(policy, "q_net"):
+                return np.asarray(policy.q_net(tensor).cpu().numpy(), dtype=np.float64)
+            out = policy.predict_values(tensor)
+        return np.asarray(out.cpu().numpy(), dtype=np.float64).reshape(-1)
+
+    def version(self) -> tuple[Any, ...]:
+        """Changes whenever the values may have changed.
+
+        It is made of the policy's identity, its training mode and the ids and in-place
+        version counters of its parameters and buffers: every optimizer step (and
+        ``set_parameters`` / ``load_state_dict``) bumps them. A change made through a
+        tensor's ``.data`` is not seen.
+        """
+        policy = self.model.policy
+        tensors = itertools.chain(policy.parameters(), policy.buffers())
+        return (id(policy), policy.training, *((id(t), t._version) for t in tensors))
+
+
+def model_value_fn(model: Any) -> ModelValueFn:
     """Return a ``value_fn`` computing a Stable-Baselines3 model's own value estimates.
 
     - Models with a Q-network (``DQN``: ``model.policy.q_net``) give Q(s, ·); the server
@@ -72,37 +124,13 @@ def model_value_fn(model: Any) -> ValueFn:
     - Actor-critic models (``A2C``, ``PPO``: ``model.policy.predict_values``) give V(s).
 
     Observations are preprocessed exactly as the policy does (``obs_to_tensor``), and
-    the evaluation runs under ``torch.no_grad()``.
+    the evaluation runs under ``torch.no_grad()``. The function has a ``version()``
+    method, so :class:`ShapedVecEnv` evaluates it once per observation.
 
     Raises:
         TypeError: The model's policy has neither ``q_net`` nor ``predict_values``.
     """
-    import torch
-
-    policy = model.policy
-    if hasattr(policy, "q_net"):
-        q_net = policy.q_net
-
-        def q_values(obs: ObsBatch) -> npt.NDArray[np.float64]:
-            tensor, _ = policy.obs_to_tensor(obs)
-            with torch.no_grad():
-                out = q_net(tensor)
-            return np.asarray(out.cpu().numpy(), dtype=np.float64)
-
-        return q_values
-    if hasattr(policy, "predict_values"):
-
-        def state_values(obs: ObsBatch) -> npt.NDArray[np.float64]:
-            tensor, _ = policy.obs_to_tensor(obs)
-            with torch.no_grad():
-                out = policy.predict_values(tensor)
-            return np.asarray(out.cpu().numpy(), dtype=np.float64).reshape(-1)
-
-        return state_values
-    raise TypeError(
-        f"{type(model).__name__}: its policy has neither q_net (DQN) nor predict_values "
-        "(A2C/PPO); pass your own value_fn"
-    )
+    return ModelValueFn(model)
 
 
 _MONITOR_ABOVE = (
@@ -141,6 +169,59 @@ def _obs_batch(obs: VecEnvObs) -> ObsBatch:
     return np.asarray(obs) if isinstance(obs, tuple) else obs
 
 
+def _evaluate(value_fn: ValueFn, obs: ObsBatch, size: int) -> npt.NDArray[np.float64]:
+    """``value_fn`` on one batch: V(s) ``(size,)`` or Q(s, ·) ``(size, num_actions)``."""
+    out = np.asarray(value_fn(obs), dtype=np.float64)
+    if out.shape == (size, 1):
+        out = out[:, 0]
+    if out.shape == (size,) or (out.ndim == 2 and out.shape[0] == size):
+        return out
+    raise ValueError(
+        f"value_fn returned shape {out.shape} for {size} observations; expected ({size},) "
+        f"state values or ({size}, num_actions) Q-values"
+    )
+
+
+def _with_rows(obs: ObsBatch, infos: list[dict[str, Any]], rows: list[int]) -> ObsBatch:
+    """A copy of ``obs`` with the given rows replaced by their ``terminal_observation``."""
+    out = copy_obs(obs)
+    for row in rows:
+        set_obs_row(out, row, infos[row]["terminal_observation"])
+    return out
+
+
+@dataclass(frozen=True)
+class ShapingStats:
+    """Sums over the environment steps a :class:`ShapedVecEnv` shaped (see ``take_stats``).
+
+    Attributes:
+        env_steps: Environment steps shaped (vector steps times ``num_envs``).
+        reward_env: Sum of the environment rewards R.
+        knn_term: Sum of alpha * r(t).
+        potential_term: Sum of beta * F.
+        knn_active: Steps on which the kNN term was active.
+        pool_version: The task's pool version after the last of them (-1: no step yet).
+    """
+
+    env_steps: int = 0
+    reward_env: float = 0.0
+    knn_term: float = 0.0
+    potential_term: float = 0.0
+    knn_active: int = 0
+    pool_version: int = -1
+
+    def __add__(self, later: ShapingStats) -> ShapingStats:
+        """The sums over both spans (``later``'s pool version if it has one)."""
+        return ShapingStats(
+            self.env_steps + later.env_steps,
+            self.reward_env + later.reward_env,
+            self.knn_term + later.knn_term,
+            self.potential_term + later.potential_term,
+            self.knn_active + later.knn_active,
+            later.pool_version if later.env_steps else self.pool_version,
+        )
+
+
 class ShapedVecEnv(VecEnvWrapper):
     """A Stable-Baselines3 ``VecEnv`` wrapper whose rewards are shaped by tamrm.
 
@@ -177,6 +258,9 @@ class ShapedVecEnv(VecEnvWrapper):
         self.value_fn = value_fn
         self.score_key = score_key
         self._obs: ObsBatch | None = None
+        # The value function's output on self._obs: (value_fn, its version, values).
+        self._values: tuple[ValueFn, Any, npt.NDArray[np.float64]] | None = None
+        self._stats = ShapingStats()
         self._actions: npt.NDArray[Any] | None = None
         # Per env, the current episode's shaped return and its parts (info["shaped_episode"]).
         self._episode = np.zeros((venv.num_envs, 4), dtype=np.float64)
@@ -224,6 +308,56 @@ class ShapedVecEnv(VecEnvWrapper):
         self.value_fn = model_value_fn(model)
         return self
 
+    def take_stats(self) -> ShapingStats:
+        """Return the sums over the steps shaped since the last call, and start new ones."""
+        stats, self._stats = self._stats, ShapingStats()
+        return stats
+
+    def _step_values(
+        self,
+        obs: ObsBatch,
+        infos: list[dict[str, Any]],
+        done_rows: list[int],
+        truncated: npt.NDArray[np.bool_],
+    ) -> dict[str, npt.NDArray[np.float64]]:
+        """The step's ``values``/``next_values`` (or Q-value) keywords for the session.
+
+        A value function with a ``version()`` method (:class:`ModelValueFn`) is evaluated
+        once per observation: V(s') of the observations returned now are the next step's
+        V(s), kept while ``version()`` stays the same. Each call is one batch of
+        ``num_envs`` observations (a network's output for a row may depend on the batch
+        size, not on the other rows), so the values are bit for bit those of evaluating
+        V(s) and V(s') separately on every step. On a step where an environment was
+        truncated, V(s') of its real last observation takes one more batch; a terminated
+        one needs none (the server takes V(s') = 0).
+        """
+        value_fn = self.value_fn
+        if value_fn is None:
+            return {}
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        finals = [row for row in done_rows if infos[row].get("terminal_observation") is not None]
+        version_of = getattr(value_fn, "version", None)
+        if not callable(version_of):
+            # A plain function may change between any two calls: both batches, every step.
+            next_obs = _with_rows(obs, infos, finals) if finals else obs
+            return value_kwargs(value_fn, self._obs, next_obs, self.num_envs)
+        version = version_of()
+        cached = self._values
+        if cached is not None and cached[0] is value_fn and cached[1] == version:
+            current = cached[2]
+        else:
+            current = _evaluate(value_fn, self._obs, self.num_envs)
+        following = _evaluate(value_fn, obs, self.num_envs)
+        self._values = (value_fn, version, following)
+        rows = [row for row in finals if truncated[row]]
+        if rows:
+            following = following.copy()
+            following[rows] = _evaluate(value_fn, _with_rows(obs, infos, rows), self.num_envs)[rows]
+        if current.ndim == 1:
+            return {"values": current, "next_values": following}
+        return {"q_values": current, "next_q_values": following}
+
     def close(self) -> None:
         """Close the VecEnv, then the session if the wrapper owns it (``close_session``)."""
         try:
@@ -235,6 +369,7 @@ class ShapedVecEnv(VecEnvWrapper):
         """Reset every sub-environment; abandon the episodes that were in progress."""
         obs = self.venv.reset()
         self._episode[:] = 0.0
+        self._values = None
         in_progress = self.session.episodes_in_progress
         if in_progress.any():
             self.session.abandon(np.flatnonzero(in_progress))
@@ -259,18 +394,7 @@ class ShapedVecEnv(VecEnvWrapper):
             truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
         terminated = dones & ~truncated
 
-        values: dict[str, npt.NDArray[np.float64]] = {}
-        if self.value_fn is not None:
-            if self._obs is None:
-                raise RuntimeError("call reset() before step()")
-            next_obs = obs
-            if done_rows.size:
-                next_obs = copy_obs(obs)
-                for row in done_rows.tolist():
-                    final = infos[row].get("terminal_observation")
-                    if final is not None:
-                        set_obs_row(next_obs, row, final)
-            values = value_kwargs(self.value_fn, self._obs, next_obs, self.num_envs)
+        values = self._step_values(obs, infos, done_rows.tolist(), truncated)
 
         scores = None
         if self.score_key is not None:
@@ -294,14 +418,17 @@ class ShapedVecEnv(VecEnvWrapper):
             **values,
         )
         cfg = self.session.config
+        knn_part, potential_part = cfg.alpha * result.knn_rewards, cfg.beta * result.potentials
         self._episode += np.stack(
-            [
-                result.rewards,
-                cfg.alpha * result.knn_rewards,
-                cfg.beta * result.potentials,
-                np.ones(self.num_envs),
-            ],
-            axis=1,
+            [result.rewards, knn_part, potential_part, np.ones(self.num_envs)], axis=1
+        )
+        self._stats += ShapingStats(
+            self.num_envs,
+            float(np.sum(rewards, dtype=np.float64)),
+            float(knn_part.sum()),
+            float(potential_part.sum()),
+            int(np.count_nonzero(result.knn_active)),
+            result.pool_version,
         )
         for i, info in enumerate(infos):
             if dones[i]:
@@ -321,3 +448,63 @@ class ShapedVecEnv(VecEnvWrapper):
             info["pool_version"] = result.pool_version
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
+
+
+class ShapingLogger(BaseCallback):
+    """Record the shaped reward's parts in the model's logger (TensorBoard, CSV, stdout).
+
+    ``model.learn(total, callback=tamrm.sb3.ShapingLogger())``: at the end of every
+    rollout it records, as means per environment step over all steps since the logger
+    last wrote a row, ``tamrm/reward_env`` (R), ``tamrm/knn_term`` (alpha * r(t)),
+    ``tamrm/potential_term`` (beta * F) and ``tamrm/knn_active_frac``, and the task's
+    ``tamrm/pool_size`` (asked from the server with ``get_task`` only when the pool
+    version changed since the last time).
+
+    Args:
+        env: The :class:`ShapedVecEnv`; by default the one in the model's env (found
+            through its ``venv`` chain).
+        prefix: The keys' prefix.
+    """
+
+    def __init__(self, env: ShapedVecEnv | None = None, *, prefix: str = "tamrm/") -> None:
+        super().__init__()
+        self.env = env
+        self.prefix = prefix
+        self._totals = ShapingStats()
+        self._pool = (-1, 0)  # (pool version, pool size) of the last get_task
+
+    def _init_callback(self) -> None:
+        env: Any = self.training_env
+        while self.env is None and isinstance(env, VecEnvWrapper):
+            if isinstance(env, ShapedVecEnv):
+                self.env = env
+            env = env.venv
+        if self.env is None:
+            raise ValueError(
+                "ShapingLogger: the model's env contains no ShapedVecEnv; pass it: "
+                "ShapingLogger(env)"
+            )
+        self.env.take_stats()  # steps shaped before learn() are not this run's
+        self._totals = ShapingStats()
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        assert self.env is not None
+        key = self.prefix + "reward_env"
+        if key not in self.logger.name_to_value:  # the logger wrote a row (or none yet)
+            self._totals = ShapingStats()
+        totals = self._totals = self._totals + self.env.take_stats()
+        if totals.env_steps == 0:
+            return
+        steps = totals.env_steps
+        self.logger.record(key, totals.reward_env / steps)
+        self.logger.record(self.prefix + "knn_term", totals.knn_term / steps)
+        self.logger.record(self.prefix + "potential_term", totals.potential_term / steps)
+        self.logger.record(self.prefix + "knn_active_frac", totals.knn_active / steps)
+        if totals.pool_version != self._pool[0]:
+            session = self.env.session
+            stats = session._client.get_task(session.task_id).stats
+            self._pool = (totals.pool_version, stats.pool_size)
+        self.logger.record(self.prefix + "pool_size", self._pool[1])
