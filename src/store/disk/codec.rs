@@ -9,8 +9,14 @@ use super::files::traj_path;
 use crate::core::{ActionCount, ActionSeq, Pool, TaskConfig, Trajectory};
 use crate::store::Counters;
 
-/// Version of the on-disk format written by this build.
-pub const FORMAT_VERSION: u32 = 1;
+/// Version of the data dir's layout, in `DATA_DIR/tamrm.json`: 2 since pool changes go
+/// to the commit log (`commits.log`); a format-1 dir is migrated at open (it is a format-2
+/// dir with an empty log).
+pub const FORMAT_VERSION: u32 = 2;
+/// The previous data dir format, still opened (and migrated).
+pub(super) const FORMAT_V1: u32 = 1;
+/// Version of `task.json`, `pool.json` and the trajectory files (unchanged by format 2).
+pub(super) const FILE_FORMAT: u32 = 1;
 
 const TRAJ_MAGIC: &[u8; 8] = b"TAMRMTRJ";
 /// magic, format, kind, dim, seq, score, length.
@@ -44,7 +50,7 @@ pub(super) struct PoolFile {
 impl PoolFile {
     pub fn new(pool: &Pool, counters: Counters) -> PoolFile {
         PoolFile {
-            format: FORMAT_VERSION,
+            format: FILE_FORMAT,
             pool_version: pool.version(),
             next_seq: pool.next_seq(),
             seqs: pool.seqs().to_vec(),
@@ -61,11 +67,22 @@ impl PoolFile {
     }
 }
 
-/// The format a file declares is the one this build reads.
+/// The format a task, pool or trajectory file declares is the one this build reads.
 pub(super) fn check_format(format: u32) -> Result<(), String> {
-    if format != FORMAT_VERSION {
+    if format != FILE_FORMAT {
         return Err(format!(
-            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION})"
+            "on-disk format {format} is not supported by this build (format {FILE_FORMAT})"
+        ));
+    }
+    Ok(())
+}
+
+/// The data dir format in `tamrm.json` is one this build opens (the current one, or
+/// format 1, which it migrates).
+pub(super) fn check_root_format(format: u32) -> Result<(), String> {
+    if format != FORMAT_VERSION && format != FORMAT_V1 {
+        return Err(format!(
+            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION}, and {FORMAT_V1} which it migrates)"
         ));
     }
     Ok(())
@@ -80,7 +97,7 @@ pub(super) fn encode_trajectory(t: &Trajectory) -> Vec<u8> {
     };
     let mut b = Vec::with_capacity(HEADER + 4 + len * 4 * (dim.max(1) as usize));
     b.extend_from_slice(TRAJ_MAGIC);
-    b.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    b.extend_from_slice(&FILE_FORMAT.to_le_bytes());
     b.extend_from_slice(&kind.to_le_bytes());
     b.extend_from_slice(&dim.to_le_bytes());
     b.extend_from_slice(&t.seq.to_le_bytes());
@@ -104,14 +121,27 @@ fn u32s(payload: &[u8]) -> Vec<u32> {
         .collect()
 }
 
-/// Decodes and checks a trajectory file read from `path` for a task with `config`:
-/// length, magic, checksum, format, the seq against the file name, the payload size, and
-/// the actions against the action space (the validator every request uses).
+/// Decodes and checks a trajectory file read from `path` for a task with `config`: the
+/// checks of [`decode_trajectory_bytes`] and the seq against the file name.
 pub(super) fn decode_trajectory(
     path: &Path,
     b: &[u8],
     config: &TaskConfig,
 ) -> Result<Trajectory, String> {
+    let t = decode_trajectory_bytes(b, config)?;
+    if path.file_name() != traj_path(Path::new(""), t.seq).file_name() {
+        return Err(format!(
+            "holds seq {}, which does not match its file name",
+            t.seq
+        ));
+    }
+    Ok(t)
+}
+
+/// Decodes and checks a trajectory file's bytes (from a file or the commit log) for a
+/// task with `config`: length, magic, checksum, format, the payload size, and the actions
+/// against the action space (the validator every request uses).
+pub(super) fn decode_trajectory_bytes(b: &[u8], config: &TaskConfig) -> Result<Trajectory, String> {
     if b.len() < HEADER + 4 {
         return Err(format!(
             "truncated: {} bytes, a trajectory file has at least {}",
@@ -139,11 +169,6 @@ pub(super) fn decode_trajectory(
     let score = f64::from_bits(u64_at(28));
     let len = usize::try_from(u64_at(36)).map_err(|_| "length overflows")?;
     let payload = &body[HEADER..];
-    if path.file_name() != traj_path(Path::new(""), seq).file_name() {
-        return Err(format!(
-            "holds seq {seq}, which does not match its file name"
-        ));
-    }
     let space = config.action_space;
     let expected_dim = space.action_dim();
     if kind != u32::from(expected_dim > 0) || dim != expected_dim {

@@ -5,6 +5,7 @@
 use std::fs::{self, File};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use serde::Deserialize;
 
@@ -14,8 +15,24 @@ pub(super) fn err(path: &Path, e: impl std::fmt::Display) -> StoreError {
     StoreError::new(path, e)
 }
 
+/// Counts the fsyncs and fdatasyncs a store issues (every call, whatever it syncs).
+#[derive(Debug, Default)]
+pub(super) struct Syncs(AtomicU64);
+
+impl Syncs {
+    /// Records one sync.
+    pub fn add(&self) {
+        self.0.fetch_add(1, Ordering::Relaxed);
+    }
+    /// Syncs so far.
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
 /// fsyncs a directory, so that the entries created, renamed or removed in it are durable.
-pub(super) fn fsync_dir(dir: &Path) -> Result<(), StoreError> {
+pub(super) fn fsync_dir(dir: &Path, syncs: &Syncs) -> Result<(), StoreError> {
+    syncs.add();
     File::open(dir)
         .and_then(|f| f.sync_all())
         .map_err(|e| err(dir, format!("fsync directory: {e}")))
@@ -23,10 +40,11 @@ pub(super) fn fsync_dir(dir: &Path) -> Result<(), StoreError> {
 
 /// Writes `bytes` to a new file at `path` (no rename: for files nothing refers to yet)
 /// and fsyncs it.
-pub(super) fn write_new(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+pub(super) fn write_new(path: &Path, bytes: &[u8], syncs: &Syncs) -> Result<(), StoreError> {
     let write = || -> std::io::Result<()> {
         let mut f = File::create(path)?;
         f.write_all(bytes)?;
+        syncs.add();
         f.sync_all()
     };
     write().map_err(|e| err(path, format!("write: {e}")))
@@ -34,13 +52,13 @@ pub(super) fn write_new(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
 
 /// Writes `bytes` to `path` atomically: a temporary file in the same directory, fsynced,
 /// renamed over `path`, then the directory fsynced.
-pub(super) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+pub(super) fn write_atomic(path: &Path, bytes: &[u8], syncs: &Syncs) -> Result<(), StoreError> {
     let mut tmp = path.as_os_str().to_owned();
     tmp.push(".tmp");
     let tmp = PathBuf::from(tmp);
-    write_new(&tmp, bytes)?;
+    write_new(&tmp, bytes, syncs)?;
     fs::rename(&tmp, path).map_err(|e| err(path, format!("write: {e}")))?;
-    fsync_dir(path.parent().unwrap_or(Path::new(".")))
+    fsync_dir(path.parent().unwrap_or(Path::new(".")), syncs)
 }
 
 /// Reads and parses a JSON file; a parse failure is reported as corruption.
@@ -107,8 +125,10 @@ mod tests {
     fn atomic_writes_replace_and_leave_no_temporary_file() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("f.json");
-        write_atomic(&p, b"{\"a\": 1}").unwrap();
-        write_atomic(&p, b"{\"a\": 2}").unwrap();
+        let syncs = Syncs::default();
+        write_atomic(&p, b"{\"a\": 1}", &syncs).unwrap();
+        write_atomic(&p, b"{\"a\": 2}", &syncs).unwrap();
+        assert_eq!(syncs.get(), 4, "file and directory, twice");
         let v: serde_json::Value = read_json(&p).unwrap();
         assert_eq!(v["a"], 2);
         std::fs::write(dir.path().join("x.tmp"), b"half").unwrap();

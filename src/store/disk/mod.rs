@@ -1,66 +1,153 @@
-//! The on-disk store: one directory per task, every change written atomically and
-//! fsynced before it is acknowledged. Format (version [`FORMAT_VERSION`]) documented in
-//! `docs/storage.md`:
+//! The on-disk store: one directory per task holding its snapshot, and one commit log for
+//! the whole data dir into which every pool change is appended and fdatasynced, shared by
+//! all the changes that arrive together (group commit), before it is acknowledged. Format
+//! (data dir version [`FORMAT_VERSION`]) documented in `docs/storage.md`:
 //!
 //! ```text
-//! DATA_DIR/tamrm.json                      {"format": 1}
+//! DATA_DIR/tamrm.json                      {"format": 2}
+//! DATA_DIR/commits.log                     pool changes since the snapshots (log.rs)
 //! DATA_DIR/tasks/<name>/task.json          {"format": 1, "task_id": …, "config": …}
 //! DATA_DIR/tasks/<name>/pool.json          {"format": 1, "pool_version": …, "next_seq": …,
 //!                                           "seqs": […], "episodes_completed": …, "steps_shaped": …}
 //! DATA_DIR/tasks/<name>/traj/<seq>.traj    one trajectory, binary, CRC-32 protected
 //! ```
 //!
-//! `pool.json` is the commit point: a trajectory file not listed in it is an unfinished
-//! change (removed at start); a listed file that is missing or fails its checks makes the
-//! server refuse to start, naming the file.
+//! A pool change is durable once its group is synced in the log; the snapshots catch up
+//! at compaction (the log past its size limit), at graceful shutdown (`save_counters`)
+//! and after recovery. At start the log is replayed over the snapshots.
 //!
-//! Split by job: [`codec`] (the bytes), [`files`] (atomic writes and fsyncs), this module
-//! (the [`Store`]: which files a change writes, in which order). The blocking file work
-//! runs on tokio's blocking pool.
+//! Split by job: [`codec`] (the files' bytes), [`log`] (the log's bytes), [`files`]
+//! (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the group
+//! commit thread and compaction), [`load`] (start-up and replay), this module (the
+//! [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
 
 mod codec;
 mod files;
+mod load;
+mod log;
+mod snapshot;
+mod writer;
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
+use std::thread::JoinHandle;
 
-use parking_lot::Mutex;
+use parking_lot::{Condvar, Mutex};
 
 use super::memory::check_version;
 use super::{apply_ops, Committed, Counters, PoolOp, Store, StoreError, StoredTask};
 use crate::core::{Pool, TaskConfig};
 pub use codec::FORMAT_VERSION;
-use codec::{check_format, decode_trajectory, encode_trajectory, PoolFile, RootFile, TaskFile};
-use files::{
-    dir_name, err, fsync_dir, read_json, remove_tmp_files, traj_path, write_atomic, write_new,
-};
+use codec::{check_root_format, RootFile, TaskFile, FILE_FORMAT, FORMAT_V1};
+use files::{dir_name, err, fsync_dir, read_json, remove_tmp_files, write_atomic};
+use snapshot::{write_pool_file, write_snapshot};
+use writer::{Change, Log, Queue, Stats};
 
 const CREATING: &str = ".creating-";
 const DELETING: &str = ".deleting-";
+const LOG_FILE: &str = "commits.log";
 
-/// A task the store holds: its directory and the pool version last committed.
+/// A task the store holds: its directory, its latest committed pool and counters, and
+/// what its snapshot on disk holds.
 #[derive(Debug, Clone)]
 struct Entry {
     dir: PathBuf,
-    version: u64,
+    pool: Arc<Pool>,
+    counters: Counters,
+    /// The pool version of the snapshot (`pool.json`).
+    snap_version: u64,
+    /// The seqs `pool.json` lists (their trajectory files exist).
+    snap_seqs: Vec<u64>,
 }
 
-#[derive(Debug)]
-struct Inner {
+impl Entry {
+    /// A task whose snapshot is `pool`.
+    fn new(dir: PathBuf, pool: Arc<Pool>, counters: Counters, snap_seqs: Vec<u64>) -> Entry {
+        Entry {
+            dir,
+            snap_version: pool.version(),
+            pool,
+            counters,
+            snap_seqs,
+        }
+    }
+
+    /// The log holds changes its snapshot lacks.
+    fn is_dirty(&self) -> bool {
+        self.pool.version() != self.snap_version
+    }
+
+    fn snapshot_written(&mut self, version: u64, seqs: Vec<u64>) {
+        self.snap_version = version;
+        self.snap_seqs = seqs;
+    }
+}
+
+/// State shared by the store's handles and its writer thread.
+struct Shared {
     root: PathBuf,
-    /// `DATA_DIR/LOCK`, locked exclusively while the store is open: a second process (or
-    /// a second store in this one) cannot open the same data dir.
-    _lock: fs::File,
-    /// task id → its directory and version, for the tasks that exist.
+    log_path: PathBuf,
+    /// task id → its directory, pool and snapshot state, for the tasks that exist.
     tasks: Mutex<HashMap<String, Entry>>,
+    /// The log; held by whatever writes files (see [`Log`]).
+    io: Mutex<Log>,
+    queue: Mutex<Queue>,
+    wake: Condvar,
+    stats: Stats,
+    /// Log size that triggers a compaction.
+    log_limit: u64,
+}
+
+struct Inner {
+    shared: Arc<Shared>,
+    writer: Option<JoinHandle<()>>,
+    /// `DATA_DIR/LOCK`, locked exclusively while the store is open: a second process (or
+    /// a second store in this one) cannot open the same data dir. Released after the
+    /// writer thread has exited (fields drop after `Drop::drop`).
+    _lock: fs::File,
+}
+
+impl Drop for Inner {
+    /// Stops the writer without writing what still waits (nobody was told it is
+    /// durable): closing a store is indistinguishable from a crash, and recovery is the
+    /// same.
+    fn drop(&mut self) {
+        self.shared.stop();
+        if let Some(h) = self.writer.take() {
+            let _ = h.join();
+        }
+    }
 }
 
 /// Stores tasks under a data directory.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct DiskStore {
     inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for DiskStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DiskStore")
+            .field("root", &self.inner.shared.root)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Counts of a [`DiskStore`]'s durable work since it was opened.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CommitStats {
+    /// Every fsync and fdatasync issued (log groups, log truncations, snapshots, task
+    /// creation and deletion, the data dir marker).
+    pub syncs: u64,
+    /// Groups written to the log, one fdatasync each.
+    pub groups: u64,
+    /// Pool changes written to the log (commits that changed a pool).
+    pub changes: u64,
+    /// Compactions of the log (snapshots written, log emptied) triggered by its size.
+    pub compactions: u64,
 }
 
 /// Takes the data dir's lock, or explains who holds it.
@@ -87,50 +174,125 @@ fn checked<T>(path: &Path, r: Result<T, String>) -> Result<T, StoreError> {
 }
 
 impl DiskStore {
-    /// Opens (creating if needed) a data directory.
+    /// The log size past which the writer compacts, by default: 64 MiB.
+    pub const DEFAULT_LOG_LIMIT: u64 = 64 << 20;
+
+    /// Opens (creating if needed, migrating a format-1 dir) a data directory.
     pub fn open(root: impl Into<PathBuf>) -> Result<DiskStore, StoreError> {
+        DiskStore::open_with_log_limit(root, DiskStore::DEFAULT_LOG_LIMIT)
+    }
+
+    /// [`DiskStore::open`], compacting the commit log whenever it has grown past
+    /// `log_limit` bytes (small limits are for tests of compaction).
+    pub fn open_with_log_limit(
+        root: impl Into<PathBuf>,
+        log_limit: u64,
+    ) -> Result<DiskStore, StoreError> {
         let root = root.into();
         let tasks = root.join("tasks");
         fs::create_dir_all(&tasks).map_err(|e| err(&tasks, format!("create: {e}")))?;
         let lock = lock_data_dir(&root)?;
         remove_tmp_files(&root)?;
+        let stats = Stats::default();
         let marker = root.join("tamrm.json");
-        if marker.exists() {
+        let found = if marker.exists() {
             let f: RootFile = read_json(&marker)?;
-            checked(&marker, check_format(f.format))?;
+            checked(&marker, check_root_format(f.format))?;
+            Some(f.format)
         } else {
+            None
+        };
+        let log_path = root.join(LOG_FILE);
+        if !log_path.exists() {
+            if found == Some(FORMAT_VERSION) {
+                return Err(err(
+                    &log_path,
+                    "missing: a format-2 data dir keeps the pool changes since the last snapshots in it; restore it, or move the data dir aside",
+                ));
+            }
+            // Created before the marker names format 2, so a format-2 dir always has one.
+            write_atomic(&log_path, &log::header(), &stats.syncs)?;
+        }
+        if found != Some(FORMAT_VERSION) {
             let bytes = serde_json::to_vec(&RootFile {
                 format: FORMAT_VERSION,
             })
             .map_err(|e| err(&marker, e))?;
-            write_atomic(&marker, &bytes)?;
+            write_atomic(&marker, &bytes, &stats.syncs)?;
+            if found == Some(FORMAT_V1) {
+                tracing::info!(dir = %root.display(), "migrated the data dir from format 1 to format 2 (an empty commit log added)");
+            }
         }
+        let file = fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(&log_path)
+            .map_err(|e| err(&log_path, format!("open: {e}")))?;
+        let len = file
+            .metadata()
+            .map_err(|e| err(&log_path, format!("stat: {e}")))?
+            .len();
+        let shared = Arc::new(Shared {
+            root,
+            log_path: log_path.clone(),
+            tasks: Mutex::new(HashMap::new()),
+            io: Mutex::new(Log {
+                file,
+                path: log_path,
+                len,
+                failed: None,
+                in_log: Default::default(),
+                compact_at: log_limit,
+                loaded: false,
+            }),
+            queue: Mutex::new(Queue::default()),
+            wake: Condvar::new(),
+            stats,
+            log_limit,
+        });
+        let writer = writer::spawn(shared.clone())?;
         Ok(DiskStore {
             inner: Arc::new(Inner {
-                root,
+                shared,
+                writer: Some(writer),
                 _lock: lock,
-                tasks: Mutex::new(HashMap::new()),
             }),
         })
+    }
+
+    /// Every fsync and fdatasync this store has issued since it was opened.
+    pub fn sync_count(&self) -> u64 {
+        self.inner.shared.stats.syncs.get()
+    }
+
+    /// Counts of the store's durable work since it was opened.
+    pub fn commit_stats(&self) -> CommitStats {
+        let s = &self.inner.shared.stats;
+        CommitStats {
+            syncs: s.syncs.get(),
+            groups: s.groups.load(Ordering::Relaxed),
+            changes: s.changes.load(Ordering::Relaxed),
+            compactions: s.compactions.load(Ordering::Relaxed),
+        }
     }
 
     /// Runs blocking file work on tokio's blocking pool (inline outside a runtime).
     async fn run<T: Send + 'static>(
         &self,
-        f: impl FnOnce(&Inner) -> Result<T, StoreError> + Send + 'static,
+        f: impl FnOnce(&Shared) -> Result<T, StoreError> + Send + 'static,
     ) -> Result<T, StoreError> {
         let inner = self.inner.clone();
         match tokio::runtime::Handle::try_current() {
             Ok(h) => h
-                .spawn_blocking(move || f(&inner))
+                .spawn_blocking(move || f(&inner.shared))
                 .await
-                .map_err(|e| err(&self.inner.root, format!("store task failed: {e}")))?,
-            Err(_) => f(&inner),
+                .map_err(|e| err(&self.inner.shared.root, format!("store task failed: {e}")))?,
+            Err(_) => f(&inner.shared),
         }
     }
 }
 
-impl Inner {
+impl Shared {
     fn tasks_dir(&self) -> PathBuf {
         self.root.join("tasks")
     }
@@ -143,102 +305,17 @@ impl Inner {
             .ok_or_else(|| err(&self.tasks_dir(), format!("task {id:?} has no directory")))
     }
 
-    fn write_pool_file(dir: &Path, pool: &Pool, counters: Counters) -> Result<(), StoreError> {
-        let path = dir.join("pool.json");
-        let bytes =
-            serde_json::to_vec_pretty(&PoolFile::new(pool, counters)).map_err(|e| err(&path, e))?;
-        write_atomic(&path, &bytes)
-    }
-
-    fn load_task(&self, dir: &Path) -> Result<StoredTask, StoreError> {
-        remove_tmp_files(dir)?;
-        let task_path = dir.join("task.json");
-        let task: TaskFile = read_json(&task_path)?;
-        checked(&task_path, check_format(task.format))?;
-        let pool_path = dir.join("pool.json");
-        let pf: PoolFile = read_json(&pool_path)?;
-        checked(&pool_path, check_format(pf.format))?;
-        let mut trajectories = Vec::with_capacity(pf.seqs.len());
-        for &seq in &pf.seqs {
-            let path = traj_path(dir, seq);
-            let bytes = fs::read(&path).map_err(|e| {
-                err(
-                    &path,
-                    format!("listed in pool.json but cannot be read: {e}"),
-                )
-            })?;
-            trajectories.push(checked(
-                &path,
-                decode_trajectory(&path, &bytes, &task.config),
-            )?);
-        }
-        // Files not listed in pool.json are unfinished or superseded changes.
-        let traj_dir = dir.join("traj");
-        let listed: HashSet<PathBuf> = pf.seqs.iter().map(|&s| traj_path(dir, s)).collect();
-        let entries = fs::read_dir(&traj_dir).map_err(|e| err(&traj_dir, format!("read: {e}")))?;
-        for entry in entries {
-            let path = entry.map_err(|e| err(&traj_dir, e))?.path();
-            if !listed.contains(&path) {
-                tracing::info!(file = %path.display(), "removing trajectory file not committed to pool.json (an unfinished or superseded change)");
-                fs::remove_file(&path).map_err(|e| err(&path, format!("remove: {e}")))?;
-            }
-        }
-        let pool = Pool::restore(
-            task.config.pool_capacity as usize,
-            trajectories,
-            pf.pool_version,
-            pf.next_seq,
-        )
-        .map_err(|m| err(&pool_path, m))?;
-        Ok(StoredTask {
-            id: task.task_id,
-            config: task.config,
-            pool,
-            counters: pf.counters(),
-        })
-    }
-
-    fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
-        let tasks_dir = self.tasks_dir();
-        let mut names: Vec<PathBuf> = fs::read_dir(&tasks_dir)
-            .map_err(|e| err(&tasks_dir, format!("read: {e}")))?
-            .map(|e| e.map(|e| e.path()).map_err(|e| err(&tasks_dir, e)))
-            .collect::<Result<_, _>>()?;
-        names.sort();
-        let mut out = Vec::new();
-        let mut tasks = self.tasks.lock();
-        for path in names {
-            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-            if name.starts_with(CREATING) || name.starts_with(DELETING) {
-                tracing::warn!(dir = %path.display(), "removing an unfinished task creation or deletion");
-                fs::remove_dir_all(&path).map_err(|e| err(&path, format!("remove: {e}")))?;
-                continue;
-            }
-            if !path.is_dir() {
-                return Err(err(&path, "unexpected file in the tasks directory"));
-            }
-            let task = self.load_task(&path)?;
-            let entry = Entry {
-                dir: path.clone(),
-                version: task.pool.version(),
-            };
-            if let Some(other) = tasks.insert(task.id.clone(), entry) {
-                return Err(err(
-                    &path,
-                    format!(
-                        "task {:?} is also stored in {}",
-                        task.id,
-                        other.dir.display()
-                    ),
-                ));
-            }
-            out.push(task);
-        }
-        fsync_dir(&tasks_dir)?;
-        Ok(out)
-    }
-
     fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+        let mut log = self.io.lock();
+        if !log.loaded {
+            return Err(err(&self.root, "the store's tasks are not loaded yet"));
+        }
+        if log.in_log.contains(id) {
+            // Records of a deleted task with this id: fold the log away first, so that
+            // they can never be replayed over the new task.
+            writer::checkpoint(self, &mut log)?;
+        }
+        let syncs = &self.stats.syncs;
         let tasks = self.tasks_dir();
         let name = dir_name(id);
         let final_dir = tasks.join(&name);
@@ -250,37 +327,32 @@ impl Inner {
         fs::create_dir_all(staging.join("traj"))
             .map_err(|e| err(&staging, format!("create: {e}")))?;
         let task = TaskFile {
-            format: FORMAT_VERSION,
+            format: FILE_FORMAT,
             task_id: id.to_string(),
             config: *config,
         };
         let task_path = staging.join("task.json");
         let bytes = serde_json::to_vec_pretty(&task).map_err(|e| err(&task_path, e))?;
-        write_atomic(&task_path, &bytes)?;
-        Self::write_pool_file(
-            &staging,
-            &Pool::new(config.pool_capacity as usize),
-            Counters::default(),
-        )?;
-        fsync_dir(&staging.join("traj"))?;
+        write_atomic(&task_path, &bytes, syncs)?;
+        let pool = Pool::new(config.pool_capacity as usize);
+        write_pool_file(&staging, &pool, Counters::default(), syncs)?;
+        fsync_dir(&staging.join("traj"), syncs)?;
         fs::rename(&staging, &final_dir).map_err(|e| err(&final_dir, format!("rename: {e}")))?;
-        fsync_dir(&tasks)?;
+        fsync_dir(&tasks, syncs)?;
         self.tasks.lock().insert(
             id.to_string(),
-            Entry {
-                dir: final_dir,
-                version: 0,
-            },
+            Entry::new(final_dir, Arc::new(pool), Counters::default(), Vec::new()),
         );
         Ok(())
     }
 
     fn delete_task(&self, id: &str) -> Result<(), StoreError> {
+        let _log = self.io.lock();
         let dir = self.entry(id)?.dir;
         let name = dir.file_name().and_then(|n| n.to_str()).unwrap_or("task");
         let doomed = self.tasks_dir().join(format!("{DELETING}{name}"));
         fs::rename(&dir, &doomed).map_err(|e| err(&dir, format!("rename: {e}")))?;
-        fsync_dir(&self.tasks_dir())?;
+        fsync_dir(&self.tasks_dir(), &self.stats.syncs)?;
         self.tasks.lock().remove(id);
         if let Err(e) = fs::remove_dir_all(&doomed) {
             // Already invisible; the next start removes it.
@@ -289,61 +361,24 @@ impl Inner {
         Ok(())
     }
 
-    /// Writes the trajectories `after` has and `before` lacks, then `pool.json` (the
-    /// commit point), then removes the files of trajectories `after` dropped.
-    fn persist(
-        &self,
-        dir: &Path,
-        before: &Pool,
-        after: &Pool,
-        counters: Counters,
-    ) -> Result<(), StoreError> {
-        let old: HashSet<u64> = before.seqs().iter().copied().collect();
-        let new: HashSet<u64> = after.seqs().iter().copied().collect();
-        let mut wrote = false;
-        for t in after
-            .trajectories()
-            .iter()
-            .filter(|t| !old.contains(&t.seq))
-        {
-            // Not yet referenced by pool.json, so written in place: a crash here leaves
-            // only an unlisted file, removed at the next start.
-            write_new(&traj_path(dir, t.seq), &encode_trajectory(t))?;
-            wrote = true;
-        }
-        if wrote {
-            fsync_dir(&dir.join("traj"))?;
-        }
-        Self::write_pool_file(dir, after, counters)?;
-        for seq in old.difference(&new) {
-            let path = traj_path(dir, *seq);
-            if let Err(e) = fs::remove_file(&path) {
-                tracing::warn!(file = %path.display(), error = %e, "could not remove a superseded trajectory file; it is removed at the next start");
+    /// Writes the task's snapshot with `counters` (at graceful shutdown); empties the log
+    /// once no task's snapshot lags behind it.
+    fn save_counters(&self, id: &str, counters: Counters) -> Result<(), StoreError> {
+        let mut log = self.io.lock();
+        let e = self.entry(id)?;
+        let seqs = write_snapshot(&e.dir, &e.pool, counters, &e.snap_seqs, &self.stats.syncs)?;
+        let all_clean = {
+            let mut tasks = self.tasks.lock();
+            if let Some(e2) = tasks.get_mut(id) {
+                e2.counters = counters;
+                e2.snapshot_written(e.pool.version(), seqs);
             }
+            tasks.values().all(|e| !e.is_dirty())
+        };
+        if all_clean && log.failed.is_none() {
+            writer::truncate(self, &mut log)?;
         }
         Ok(())
-    }
-
-    fn commit(
-        &self,
-        id: &str,
-        base: &Pool,
-        ops: Vec<PoolOp>,
-        counters: Counters,
-    ) -> Result<Committed, StoreError> {
-        let entry = self.entry(id)?;
-        check_version(id, Some(entry.version), base)?;
-        let (pool, changed) = apply_ops(base, ops);
-        if pool.version() != base.version() {
-            self.persist(&entry.dir, base, &pool, counters)?;
-            if let Some(e) = self.tasks.lock().get_mut(id) {
-                e.version = pool.version();
-            }
-        }
-        Ok(Committed {
-            pool: Arc::new(pool),
-            changed,
-        })
     }
 }
 
@@ -351,13 +386,13 @@ impl Inner {
 impl Store for DiskStore {
     fn describe(&self) -> String {
         format!(
-            "data dir {} (format {FORMAT_VERSION}): every task and pool change is fsynced before it is acknowledged",
-            self.inner.root.display()
+            "data dir {} (format {FORMAT_VERSION}): every pool change is appended to {LOG_FILE} and fdatasynced (one sync per group of concurrent commits) before it is acknowledged",
+            self.inner.shared.root.display()
         )
     }
 
     async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
-        self.run(|s| s.load()).await
+        self.run(|s| load::load(s, &mut s.io.lock())).await
     }
 
     async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
@@ -377,19 +412,38 @@ impl Store for DiskStore {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
-        let id = id.to_string();
-        self.run(move |s| s.commit(&id, &base, ops, counters)).await
+        let shared = &self.inner.shared;
+        let known = shared.entry(id)?.pool.version();
+        check_version(id, Some(known), &base)?;
+        let (pool, changed) = apply_ops(&base, ops);
+        let pool = Arc::new(pool);
+        if pool.version() != base.version() {
+            let record = log::encode_commit(id, &base, &pool, counters);
+            let done = shared.submit(Change {
+                task: id.to_string(),
+                base_version: base.version(),
+                pool: pool.clone(),
+                counters,
+                record,
+            })?;
+            done.await.map_err(|_| {
+                err(
+                    &shared.log_path,
+                    "the commit log writer stopped before the commit was written",
+                )
+            })??;
+        }
+        Ok(Committed { pool, changed })
     }
 
     async fn save_counters(
         &self,
         id: &str,
-        pool: Arc<Pool>,
+        _pool: Arc<Pool>,
         counters: Counters,
     ) -> Result<(), StoreError> {
         let id = id.to_string();
-        self.run(move |s| Inner::write_pool_file(&s.entry(&id)?.dir, &pool, counters))
-            .await
+        self.run(move |s| s.save_counters(&id, counters)).await
     }
 }
 

@@ -1,0 +1,279 @@
+//! Start-up: read every task's snapshot (cleaning up unfinished changes), replay the
+//! commit log over the snapshots, fold the result into new snapshots and empty the log.
+//!
+//! Replay rules per record (docs/storage.md): a record of a task without a directory is
+//! ignored (the task was deleted, or moved out of `tasks/` by an operator); one whose
+//! version the snapshot already has is skipped; one that continues the task's version is
+//! applied; one that leaves a gap is corruption. A torn last group is dropped; anything
+//! else that fails its checks is corruption, reported naming the log file.
+
+use std::collections::{HashMap, HashSet};
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
+use super::files::{err, fsync_dir, read_json, remove_tmp_files, traj_path};
+use super::log::{scan, Scan};
+use super::snapshot::write_snapshot;
+use super::writer::{truncate, Log};
+use super::{checked, Entry, Shared, CREATING, DELETING};
+use crate::core::{Pool, Trajectory};
+use crate::store::{Counters, StoreError, StoredTask};
+
+/// A task as its snapshot has it.
+struct Loaded {
+    task: StoredTask,
+    dir: PathBuf,
+    /// The seqs `pool.json` lists.
+    listed: Vec<u64>,
+}
+
+fn load_task(dir: &Path) -> Result<StoredTask, StoreError> {
+    remove_tmp_files(dir)?;
+    let task_path = dir.join("task.json");
+    let task: TaskFile = read_json(&task_path)?;
+    checked(&task_path, check_format(task.format))?;
+    let pool_path = dir.join("pool.json");
+    let pf: PoolFile = read_json(&pool_path)?;
+    checked(&pool_path, check_format(pf.format))?;
+    let mut trajectories = Vec::with_capacity(pf.seqs.len());
+    for &seq in &pf.seqs {
+        let path = traj_path(dir, seq);
+        let bytes = fs::read(&path).map_err(|e| {
+            err(
+                &path,
+                format!("listed in pool.json but cannot be read: {e}"),
+            )
+        })?;
+        trajectories.push(checked(
+            &path,
+            decode_trajectory(&path, &bytes, &task.config),
+        )?);
+    }
+    // Files not listed in pool.json are unfinished or superseded changes (the commit
+    // log holds its trajectories itself).
+    let traj_dir = dir.join("traj");
+    let listed: HashSet<PathBuf> = pf.seqs.iter().map(|&s| traj_path(dir, s)).collect();
+    let entries = fs::read_dir(&traj_dir).map_err(|e| err(&traj_dir, format!("read: {e}")))?;
+    for entry in entries {
+        let path = entry.map_err(|e| err(&traj_dir, e))?.path();
+        if !listed.contains(&path) {
+            tracing::info!(file = %path.display(), "removing trajectory file not committed to pool.json (an unfinished or superseded change)");
+            fs::remove_file(&path).map_err(|e| err(&path, format!("remove: {e}")))?;
+        }
+    }
+    let pool = Pool::restore(
+        task.config.pool_capacity as usize,
+        trajectories,
+        pf.pool_version,
+        pf.next_seq,
+    )
+    .map_err(|m| err(&pool_path, m))?;
+    Ok(StoredTask {
+        id: task.task_id,
+        config: task.config,
+        pool,
+        counters: pf.counters(),
+    })
+}
+
+fn load_snapshots(shared: &Shared) -> Result<Vec<Loaded>, StoreError> {
+    let tasks_dir = shared.root.join("tasks");
+    let mut names: Vec<PathBuf> = fs::read_dir(&tasks_dir)
+        .map_err(|e| err(&tasks_dir, format!("read: {e}")))?
+        .map(|e| e.map(|e| e.path()).map_err(|e| err(&tasks_dir, e)))
+        .collect::<Result<_, _>>()?;
+    names.sort();
+    let mut out: Vec<Loaded> = Vec::new();
+    let mut seen: HashMap<String, PathBuf> = HashMap::new();
+    for path in names {
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        if name.starts_with(CREATING) || name.starts_with(DELETING) {
+            tracing::warn!(dir = %path.display(), "removing an unfinished task creation or deletion");
+            fs::remove_dir_all(&path).map_err(|e| err(&path, format!("remove: {e}")))?;
+            continue;
+        }
+        if !path.is_dir() {
+            return Err(err(&path, "unexpected file in the tasks directory"));
+        }
+        let task = load_task(&path)?;
+        if let Some(other) = seen.insert(task.id.clone(), path.clone()) {
+            return Err(err(
+                &path,
+                format!("task {:?} is also stored in {}", task.id, other.display()),
+            ));
+        }
+        let listed = task.pool.seqs().to_vec();
+        out.push(Loaded {
+            task,
+            dir: path,
+            listed,
+        });
+    }
+    fsync_dir(&tasks_dir, &shared.stats.syncs)?;
+    Ok(out)
+}
+
+/// A task's pool while records are replayed over it.
+struct Replaying {
+    version: u64,
+    next_seq: u64,
+    seqs: Vec<u64>,
+    trajectories: HashMap<u64, Arc<Trajectory>>,
+    counters: Counters,
+}
+
+impl Replaying {
+    fn new(pool: &Pool, counters: Counters) -> Replaying {
+        Replaying {
+            version: pool.version(),
+            next_seq: pool.next_seq(),
+            seqs: pool.seqs().to_vec(),
+            trajectories: pool
+                .trajectories()
+                .iter()
+                .map(|t| (t.seq, t.clone()))
+                .collect(),
+            counters,
+        }
+    }
+}
+
+/// Replays the log's records over the snapshots. Returns the indices of the tasks it
+/// changed (their pool and counters replaced).
+fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, StoreError> {
+    let index: HashMap<String, usize> = tasks
+        .iter()
+        .enumerate()
+        .map(|(i, t)| (t.task.id.clone(), i))
+        .collect();
+    let mut states: HashMap<usize, Replaying> = HashMap::new();
+    let mut orphans: HashSet<&str> = HashSet::new();
+    for g in &scan.groups {
+        for (ri, rec) in g.records.iter().enumerate() {
+            let at = |m: String| {
+                err(
+                    path,
+                    format!(
+                        "group at offset {}, record {ri}, task {:?}: {m}",
+                        g.offset, rec.task
+                    ),
+                )
+            };
+            let Some(&i) = index.get(&rec.task) else {
+                if orphans.insert(&rec.task) {
+                    tracing::warn!(task = %rec.task, log = %path.display(), "ignoring commit log records of a task that has no directory (deleted, or moved out of tasks/)");
+                }
+                continue;
+            };
+            let task = &tasks[i].task;
+            let st = states
+                .entry(i)
+                .or_insert_with(|| Replaying::new(&task.pool, task.counters));
+            if rec.version <= st.version {
+                continue; // already in the snapshot
+            }
+            if rec.base_version != st.version {
+                return Err(at(format!(
+                    "a change from version {} to {}, but the task is at version {}: a change is missing",
+                    rec.base_version, rec.version, st.version
+                )));
+            }
+            let mut added = HashMap::with_capacity(rec.added.len());
+            for b in &rec.added {
+                let t = decode_trajectory_bytes(b, &task.config)
+                    .map_err(|m| at(format!("a trajectory: {m}")))?;
+                added.insert(t.seq, Arc::new(t));
+            }
+            let mut trajectories = HashMap::with_capacity(rec.seqs.len());
+            for &s in &rec.seqs {
+                let t = added
+                    .remove(&s)
+                    .or_else(|| st.trajectories.get(&s).cloned())
+                    .ok_or_else(|| at(format!("seq {s} is neither added nor in the pool")))?;
+                trajectories.insert(s, t);
+            }
+            if let Some(s) = added.keys().next() {
+                return Err(at(format!("added trajectory seq {s} is not in the pool")));
+            }
+            *st = Replaying {
+                version: rec.version,
+                next_seq: rec.next_seq,
+                seqs: rec.seqs.clone(),
+                trajectories,
+                counters: rec.counters,
+            };
+        }
+    }
+    let mut changed = Vec::new();
+    for (i, st) in states {
+        let t = &mut tasks[i].task;
+        if st.version == t.pool.version() {
+            continue;
+        }
+        let mut list = Vec::with_capacity(st.seqs.len());
+        for s in &st.seqs {
+            if let Some(tr) = st.trajectories.get(s) {
+                list.push(Trajectory::clone(tr));
+            }
+        }
+        t.pool = Pool::restore(
+            t.config.pool_capacity as usize,
+            list,
+            st.version,
+            st.next_seq,
+        )
+        .map_err(|m| err(path, format!("task {:?} after replay: {m}", t.id)))?;
+        t.counters = st.counters;
+        changed.push(i);
+    }
+    changed.sort_unstable();
+    Ok(changed)
+}
+
+/// Loads every task: snapshots, then the log replayed over them, folded into new
+/// snapshots; the log is then emptied (dropping a torn tail with it).
+pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, StoreError> {
+    let mut tasks = load_snapshots(shared)?;
+    let bytes = fs::read(&log.path).map_err(|e| err(&log.path, format!("read: {e}")))?;
+    let scan = checked(&log.path, scan(&bytes))?;
+    if let Some((offset, len, why)) = &scan.torn {
+        tracing::warn!(log = %log.path.display(), offset, bytes = len, problem = %why, "dropping the incomplete last group of the commit log (a write interrupted by a crash, never acknowledged)");
+    }
+    let changed = replay(&log.path, &scan, &mut tasks)?;
+    let records: usize = scan.groups.iter().map(|g| g.records.len()).sum();
+    if records > 0 {
+        tracing::info!(log = %log.path.display(), groups = scan.groups.len(), records, tasks_changed = changed.len(), "replayed the commit log");
+    }
+    for &i in &changed {
+        let t = &mut tasks[i];
+        t.listed = write_snapshot(
+            &t.dir,
+            &t.task.pool,
+            t.task.counters,
+            &t.listed,
+            &shared.stats.syncs,
+        )?;
+    }
+    {
+        let mut entries = shared.tasks.lock();
+        entries.clear();
+        for t in &tasks {
+            entries.insert(
+                t.task.id.clone(),
+                Entry::new(
+                    t.dir.clone(),
+                    Arc::new(t.task.pool.clone()),
+                    t.task.counters,
+                    t.listed.clone(),
+                ),
+            );
+        }
+    }
+    log.len = bytes.len() as u64;
+    truncate(shared, log)?;
+    log.failed = None;
+    log.loaded = true;
+    Ok(tasks.into_iter().map(|t| t.task).collect())
+}

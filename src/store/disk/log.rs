@@ -1,0 +1,355 @@
+//! The bytes of the commit log `DATA_DIR/commits.log` (`docs/storage.md`): a header, then
+//! groups, each one `write` + one `fdatasync` of the group-commit writer, holding the
+//! records of the pool changes it acknowledged together. Pure: no I/O.
+//!
+//! ```text
+//! header  "TAMRMLOG" | format u32
+//! group   "TGRP" | payload length n u32 | record count u32 | n bytes of records | CRC-32 u32
+//! record  kind u8 (1) | id length u32 | id | base version u64 | version u64 | next_seq u64
+//!         | episodes_completed u64 | steps_shaped u64 | k u32 | k seqs u64 (the pool after)
+//!         | m u32 | m × (length u32 | a trajectory file's bytes)   (the trajectories added)
+//! ```
+//!
+//! The CRC of a group covers its magic, lengths and records. A group is the unit of
+//! atomicity: the writer writes the next group only after the previous one is synced, so
+//! after a crash only the last group can be incomplete.
+
+use std::collections::HashSet;
+
+use super::codec::encode_trajectory;
+use crate::core::Pool;
+use crate::store::Counters;
+
+const LOG_MAGIC: &[u8; 8] = b"TAMRMLOG";
+/// Version of the commit log's layout.
+pub(super) const LOG_FORMAT: u32 = 1;
+/// Bytes of the log header.
+pub(super) const HEADER_LEN: u64 = 12;
+const GROUP_MAGIC: &[u8; 4] = b"TGRP";
+/// magic, payload length, record count.
+const GROUP_HEAD: usize = 12;
+const KIND_COMMIT: u8 = 1;
+
+/// The header of an empty log.
+pub(super) fn header() -> Vec<u8> {
+    let mut b = LOG_MAGIC.to_vec();
+    b.extend_from_slice(&LOG_FORMAT.to_le_bytes());
+    b
+}
+
+/// One pool change as it is logged: the pool after the change, given as the seqs it
+/// holds, the trajectories new since `base_version`, and the counters.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct Record {
+    pub task: String,
+    pub base_version: u64,
+    pub version: u64,
+    pub next_seq: u64,
+    pub counters: Counters,
+    pub seqs: Vec<u64>,
+    /// Encoded trajectory files (checked against the task config at replay).
+    pub added: Vec<Vec<u8>>,
+}
+
+/// Encodes the record of the change from `base` to `after`.
+pub(super) fn encode_commit(task: &str, base: &Pool, after: &Pool, counters: Counters) -> Vec<u8> {
+    let old: HashSet<u64> = base.seqs().iter().copied().collect();
+    let added: Vec<Vec<u8>> = after
+        .trajectories()
+        .iter()
+        .filter(|t| !old.contains(&t.seq))
+        .map(|t| encode_trajectory(t))
+        .collect();
+    let mut b = Vec::with_capacity(64 + task.len() + 8 * after.len());
+    b.push(KIND_COMMIT);
+    put_bytes(&mut b, task.as_bytes());
+    for v in [
+        base.version(),
+        after.version(),
+        after.next_seq(),
+        counters.episodes_completed,
+        counters.steps_shaped,
+    ] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    put_len(&mut b, after.len());
+    after
+        .seqs()
+        .iter()
+        .for_each(|s| b.extend_from_slice(&s.to_le_bytes()));
+    put_len(&mut b, added.len());
+    added.iter().for_each(|t| put_bytes(&mut b, t));
+    b
+}
+
+fn put_len(b: &mut Vec<u8>, n: usize) {
+    // Lengths are bounded by the server's limits (message size, pool capacity), far
+    // below 4 GiB; saturate rather than wrap, which would fail the decode loudly.
+    b.extend_from_slice(&u32::try_from(n).unwrap_or(u32::MAX).to_le_bytes());
+}
+
+fn put_bytes(b: &mut Vec<u8>, bytes: &[u8]) {
+    put_len(b, bytes.len());
+    b.extend_from_slice(bytes);
+}
+
+/// One group's bytes: its records (already encoded) framed and checksummed.
+pub(super) fn encode_group(records: &[&[u8]]) -> Vec<u8> {
+    let n: usize = records.iter().map(|r| r.len()).sum();
+    let mut b = Vec::with_capacity(GROUP_HEAD + n + 4);
+    b.extend_from_slice(GROUP_MAGIC);
+    put_len(&mut b, n);
+    put_len(&mut b, records.len());
+    records.iter().for_each(|r| b.extend_from_slice(r));
+    let crc = crc32fast::hash(&b);
+    b.extend_from_slice(&crc.to_le_bytes());
+    b
+}
+
+/// A checked reader over bytes read from disk: every read is bounds-checked.
+struct Reader<'a> {
+    b: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+        let end = self
+            .pos
+            .checked_add(n)
+            .filter(|&e| e <= self.b.len())
+            .ok_or_else(|| format!("a record ends early (needs {n} bytes at {})", self.pos))?;
+        let s = &self.b[self.pos..end];
+        self.pos = end;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, String> {
+        Ok(self.take(1)?[0])
+    }
+    fn u32(&mut self) -> Result<u32, String> {
+        let mut a = [0u8; 4];
+        a.copy_from_slice(self.take(4)?);
+        Ok(u32::from_le_bytes(a))
+    }
+    fn u64(&mut self) -> Result<u64, String> {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(self.take(8)?);
+        Ok(u64::from_le_bytes(a))
+    }
+    fn len(&mut self) -> Result<usize, String> {
+        usize::try_from(self.u32()?).map_err(|_| "a length overflows".to_string())
+    }
+    fn bytes(&mut self) -> Result<&'a [u8], String> {
+        let n = self.len()?;
+        self.take(n)
+    }
+}
+
+fn decode_record(r: &mut Reader) -> Result<Record, String> {
+    let kind = r.u8()?;
+    if kind != KIND_COMMIT {
+        return Err(format!("unknown record kind {kind}"));
+    }
+    let task = String::from_utf8(r.bytes()?.to_vec()).map_err(|_| "a task id is not UTF-8")?;
+    let (base_version, version, next_seq) = (r.u64()?, r.u64()?, r.u64()?);
+    let counters = Counters {
+        episodes_completed: r.u64()?,
+        steps_shaped: r.u64()?,
+    };
+    let k = r.len()?;
+    // Bounded by the bytes present, so a bad count cannot allocate much.
+    let mut seqs = Vec::with_capacity(k.min(r.b.len() / 8));
+    for _ in 0..k {
+        seqs.push(r.u64()?);
+    }
+    let m = r.len()?;
+    let mut added = Vec::with_capacity(m.min(r.b.len() / 4));
+    for _ in 0..m {
+        added.push(r.bytes()?.to_vec());
+    }
+    if version <= base_version {
+        return Err(format!(
+            "task {task:?}: version {version} does not follow base version {base_version}"
+        ));
+    }
+    Ok(Record {
+        task,
+        base_version,
+        version,
+        next_seq,
+        counters,
+        seqs,
+        added,
+    })
+}
+
+/// The group starting at `off`, if a complete one with a valid checksum is there:
+/// its records' bytes and record count, and the offset after it.
+fn group_at(b: &[u8], off: usize) -> Result<(&[u8], usize, usize), String> {
+    let rest = b.get(off..).unwrap_or(&[]);
+    if rest.len() < GROUP_HEAD + 4 {
+        return Err(format!(
+            "{} bytes, a group has at least {}",
+            rest.len(),
+            GROUP_HEAD + 4
+        ));
+    }
+    if &rest[..4] != GROUP_MAGIC {
+        return Err("no group magic".into());
+    }
+    let mut r = Reader { b: rest, pos: 4 };
+    let (n, count) = (r.len()?, r.len()?);
+    let end = n
+        .checked_add(GROUP_HEAD)
+        .filter(|&e| e.checked_add(4).is_some_and(|t| t <= rest.len()))
+        .ok_or_else(|| format!("incomplete: the group needs {n} bytes of records"))?;
+    let mut crc = [0u8; 4];
+    crc.copy_from_slice(&rest[end..end + 4]);
+    if crc32fast::hash(&rest[..end]) != u32::from_le_bytes(crc) {
+        return Err("checksum mismatch".into());
+    }
+    Ok((&rest[GROUP_HEAD..end], count, off + end + 4))
+}
+
+/// A group read back: where it starts and its records.
+#[derive(Debug)]
+pub(super) struct Group {
+    pub offset: u64,
+    pub records: Vec<Record>,
+}
+
+/// What a log holds: its complete groups and, if the last one is incomplete or fails its
+/// checksum with nothing valid after it, that torn tail (never acknowledged).
+#[derive(Debug)]
+pub(super) struct Scan {
+    pub groups: Vec<Group>,
+    /// Offset, length and problem of a torn last group.
+    pub torn: Option<(u64, u64, String)>,
+}
+
+/// Reads a whole log. Errors (corruption, reported naming the log file) are: a bad
+/// header; a group that fails its checks while a valid group follows it (so it is not
+/// the torn last write); a group with a valid checksum whose records do not decode.
+pub(super) fn scan(b: &[u8]) -> Result<Scan, String> {
+    if b.len() < HEADER_LEN as usize || &b[..8] != LOG_MAGIC {
+        return Err("not a tamrm commit log (bad or truncated header)".into());
+    }
+    let format = u32::from_le_bytes([b[8], b[9], b[10], b[11]]);
+    if format != LOG_FORMAT {
+        return Err(format!(
+            "commit log format {format} is not supported by this build (format {LOG_FORMAT})"
+        ));
+    }
+    let mut off = HEADER_LEN as usize;
+    let mut groups = Vec::new();
+    while off < b.len() {
+        match group_at(b, off) {
+            Ok((payload, count, next)) => {
+                let mut r = Reader { b: payload, pos: 0 };
+                let mut records = Vec::with_capacity(count.min(payload.len()));
+                for i in 0..count {
+                    records.push(
+                        decode_record(&mut r)
+                            .map_err(|m| format!("group at offset {off}, record {i}: {m}"))?,
+                    );
+                }
+                if r.pos != payload.len() {
+                    return Err(format!(
+                        "group at offset {off}: {} bytes after its {count} records",
+                        payload.len() - r.pos
+                    ));
+                }
+                groups.push(Group {
+                    offset: off as u64,
+                    records,
+                });
+                off = next;
+            }
+            Err(why) => {
+                if let Some(p) = (off + 1..b.len()).find(|&p| group_at(b, p).is_ok()) {
+                    return Err(format!(
+                        "the group at offset {off} is corrupt ({why}), and a valid group follows at offset {p}"
+                    ));
+                }
+                let torn = (off as u64, (b.len() - off) as u64, why);
+                return Ok(Scan {
+                    groups,
+                    torn: Some(torn),
+                });
+            }
+        }
+    }
+    Ok(Scan { groups, torn: None })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::{ActionSeq, Trajectory};
+    use std::sync::Arc;
+
+    fn pools() -> (Pool, Pool) {
+        let t = |seq, score| Trajectory {
+            actions: ActionSeq::Discrete(vec![1, 2, seq as u32]),
+            score,
+            seq,
+        };
+        let base = Pool::restore(3, vec![t(1, 1.0), t(2, 2.0)], 2, 3).unwrap();
+        let after = Pool::restore(3, vec![t(2, 2.0), t(3, 3.0)], 3, 4).unwrap();
+        (base, after)
+    }
+
+    fn log_of(groups: &[Vec<u8>]) -> Vec<u8> {
+        let mut b = header();
+        groups.iter().for_each(|g| b.extend_from_slice(g));
+        b
+    }
+
+    #[test]
+    fn records_round_trip() {
+        let (base, after) = pools();
+        let c = Counters {
+            episodes_completed: 7,
+            steps_shaped: 99,
+        };
+        let r = encode_commit("a/b", &base, &after, c);
+        let g = encode_group(&[&r, &r]);
+        let s = scan(&log_of(&[g])).unwrap();
+        assert!(s.torn.is_none());
+        let rec = &s.groups[0].records[1];
+        assert_eq!(
+            (
+                rec.task.as_str(),
+                rec.base_version,
+                rec.version,
+                rec.next_seq
+            ),
+            ("a/b", 2, 3, 4)
+        );
+        assert_eq!((rec.counters, rec.seqs.clone()), (c, vec![2, 3]));
+        let t3: &Arc<Trajectory> = &after.trajectories()[1];
+        assert_eq!(rec.added, vec![encode_trajectory(t3)]);
+    }
+
+    #[test]
+    fn a_torn_last_group_is_dropped_and_an_earlier_bad_one_is_corruption() {
+        let (base, after) = pools();
+        let r = encode_commit("t", &base, &after, Counters::default());
+        let g = encode_group(&[&r]);
+        let full = log_of(&[g.clone(), g.clone()]);
+        let first_end = HEADER_LEN as usize + g.len();
+        for cut in first_end..full.len() {
+            let s = scan(&full[..cut]).unwrap();
+            assert_eq!(s.groups.len(), 1, "cut {cut}");
+            assert_eq!(s.torn.is_some(), cut > first_end, "cut {cut}");
+        }
+        for i in HEADER_LEN as usize..first_end {
+            let mut b = full.clone();
+            b[i] ^= 0x10;
+            assert!(scan(&b).is_err(), "flip at {i}");
+        }
+        for cut in 0..HEADER_LEN as usize {
+            assert!(scan(&full[..cut]).is_err());
+        }
+    }
+}

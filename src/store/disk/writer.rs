@@ -1,0 +1,300 @@
+//! Group commit: one thread owns the commit log. It takes every commit waiting at that
+//! moment (from all streams and all tasks), checks each against the task's current
+//! version, appends their records as one group with one `write`, calls `fdatasync` once,
+//! publishes the new pools in the store's table and only then acknowledges them all.
+//! While it syncs, the next commits queue up and form the next group.
+//!
+//! Compaction (also here, between groups, when the log has grown past the limit): every
+//! task whose pool is newer than its snapshot gets a new snapshot, then the log is
+//! truncated to its header and fsynced. A crash anywhere in between leaves records that
+//! the snapshots already contain, which replay skips by version.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use tokio::sync::oneshot;
+
+use super::files::{err, Syncs};
+use super::log::{encode_group, HEADER_LEN};
+use super::snapshot::write_snapshot;
+use super::Shared;
+use crate::core::Pool;
+use crate::store::{Counters, StoreError};
+
+/// At most this many bytes of records go into one group (a larger single record still
+/// forms a group of its own).
+const MAX_GROUP_BYTES: usize = 16 << 20;
+
+/// A pool change for the writer: the task, the version it was planned against, the
+/// resulting pool and counters, and its encoded log record.
+pub(super) struct Change {
+    pub task: String,
+    pub base_version: u64,
+    pub pool: Arc<Pool>,
+    pub counters: Counters,
+    pub record: Vec<u8>,
+}
+
+/// A change waiting for the writer, with where to send the outcome.
+struct CommitReq {
+    change: Change,
+    ack: oneshot::Sender<Result<(), StoreError>>,
+}
+
+/// Commits waiting for the writer.
+#[derive(Default)]
+pub(super) struct Queue {
+    jobs: VecDeque<CommitReq>,
+    /// The store is closing: the writer exits without writing what waits.
+    stop: bool,
+    /// The writer has exited: nothing is accepted any more.
+    dead: bool,
+}
+
+/// The commit log file and what the writer knows about it. Held (in `Shared::io`) by the
+/// writer for a group or a compaction, and by whatever else writes task files (load,
+/// create, delete, graceful-shutdown snapshots), so these never interleave.
+pub(super) struct Log {
+    pub file: File,
+    pub path: PathBuf,
+    /// End of the last complete group.
+    pub len: u64,
+    /// Set when a write or sync failed: the log's tail is unknown, so nothing more is
+    /// appended until a restart (which recovers from what reached the disk).
+    pub failed: Option<String>,
+    /// Tasks with records in the log (including deleted ones).
+    pub in_log: HashSet<String>,
+    /// The log size at which the writer compacts next.
+    pub compact_at: u64,
+    /// `load` has run: the tasks are known and the log is replayed and truncated.
+    pub loaded: bool,
+}
+
+/// Counters of durable work, kept by the store.
+#[derive(Debug, Default)]
+pub(super) struct Stats {
+    pub syncs: Syncs,
+    pub groups: AtomicU64,
+    pub changes: AtomicU64,
+    pub compactions: AtomicU64,
+}
+
+impl Shared {
+    /// Queues a commit for the writer; the receiver resolves once it is durable (or
+    /// failed). Errors if the writer is gone.
+    pub(super) fn submit(
+        &self,
+        change: Change,
+    ) -> Result<oneshot::Receiver<Result<(), StoreError>>, StoreError> {
+        let mut q = self.queue.lock();
+        if q.dead || q.stop {
+            return Err(err(&self.log_path, "the commit log writer has stopped"));
+        }
+        let (ack, rx) = oneshot::channel();
+        q.jobs.push_back(CommitReq { change, ack });
+        self.wake.notify_one();
+        Ok(rx)
+    }
+
+    /// Tells the writer to exit (it finishes the group it is writing, if any).
+    pub(super) fn stop(&self) {
+        self.queue.lock().stop = true;
+        self.wake.notify_all();
+    }
+}
+
+/// Starts the writer thread.
+pub(super) fn spawn(shared: Arc<Shared>) -> Result<JoinHandle<()>, StoreError> {
+    std::thread::Builder::new()
+        .name("tamrm-commit-log".into())
+        .spawn(move || run(&shared))
+        .map_err(|e| err(&PathBuf::from("commit log writer"), format!("spawn: {e}")))
+}
+
+/// Marks the writer dead when it exits, however it exits, dropping what still waits (its
+/// callers get an error instead of waiting forever).
+struct MarkDead<'a>(&'a Shared);
+
+impl Drop for MarkDead<'_> {
+    fn drop(&mut self) {
+        let mut q = self.0.queue.lock();
+        q.dead = true;
+        q.jobs.clear();
+    }
+}
+
+fn run(shared: &Shared) {
+    let _dead = MarkDead(shared);
+    loop {
+        let batch = {
+            let mut q = shared.queue.lock();
+            while q.jobs.is_empty() && !q.stop {
+                shared.wake.wait(&mut q);
+            }
+            if q.stop {
+                return;
+            }
+            take_group(&mut q.jobs)
+        };
+        let mut log = shared.io.lock();
+        write_group(shared, &mut log, batch);
+        if log.len >= log.compact_at && log.failed.is_none() {
+            match checkpoint(shared, &mut log) {
+                Ok(()) => {
+                    shared.stats.compactions.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(e) => {
+                    log.compact_at = log.len.saturating_add(shared.log_limit);
+                    tracing::warn!(error = %e, "commit log compaction failed; retried when the log has grown by its limit again");
+                }
+            }
+        }
+    }
+}
+
+/// Everything waiting, up to [`MAX_GROUP_BYTES`] of records (at least one commit).
+fn take_group(jobs: &mut VecDeque<CommitReq>) -> Vec<CommitReq> {
+    let mut bytes = 0;
+    let mut out = Vec::with_capacity(jobs.len());
+    while let Some(j) = jobs.front() {
+        let n = j.change.record.len();
+        if !out.is_empty() && bytes + n > MAX_GROUP_BYTES {
+            break;
+        }
+        bytes += n;
+        out.extend(jobs.pop_front());
+    }
+    out
+}
+
+fn reply(req: CommitReq, r: Result<(), StoreError>) {
+    // The caller may have gone (a cancelled request); the outcome stands regardless.
+    let _ = req.ack.send(r);
+}
+
+/// Checks, writes, syncs and acknowledges one group.
+fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
+    let mut accepted = Vec::with_capacity(batch.len());
+    {
+        let tasks = shared.tasks.lock();
+        // Versions after the commits already accepted into this group.
+        let mut pending: HashMap<String, u64> = HashMap::new();
+        for req in batch {
+            if let Some(f) = &log.failed {
+                let m = format!(
+                    "a write to the commit log failed earlier ({f}); restart the server to recover"
+                );
+                reply(req, Err(err(&log.path, m)));
+                continue;
+            }
+            let c = &req.change;
+            let found = pending
+                .get(&c.task)
+                .copied()
+                .or_else(|| tasks.get(&c.task).map(|e| e.pool.version()));
+            match found {
+                None => {
+                    let m = format!("task {:?} has no directory", c.task);
+                    reply(req, Err(err(&shared.root.join("tasks"), m)));
+                }
+                Some(v) if v != c.base_version => {
+                    let e = StoreError::Conflict {
+                        task: c.task.clone(),
+                        expected: c.base_version,
+                        found: v,
+                    };
+                    reply(req, Err(e));
+                }
+                Some(_) => {
+                    pending.insert(c.task.clone(), c.pool.version());
+                    accepted.push(req);
+                }
+            }
+        }
+    }
+    if accepted.is_empty() {
+        return;
+    }
+    let records: Vec<&[u8]> = accepted
+        .iter()
+        .map(|r| r.change.record.as_slice())
+        .collect();
+    let bytes = encode_group(&records);
+    let written = log.file.write_all_at(&bytes, log.len).and_then(|()| {
+        shared.stats.syncs.add();
+        log.file.sync_data()
+    });
+    if let Err(e) = written {
+        let m = format!("append and fdatasync: {e}");
+        tracing::error!(file = %log.path.display(), error = %e, "a commit log write failed; no more pool changes are accepted until a restart");
+        // Best effort: cut the partial group off (recovery drops it anyway, as the tail).
+        let _ = log.file.set_len(log.len);
+        log.failed = Some(m.clone());
+        for req in accepted {
+            reply(req, Err(err(&log.path, &m)));
+        }
+        return;
+    }
+    log.len += bytes.len() as u64;
+    shared.stats.groups.fetch_add(1, Ordering::Relaxed);
+    let n = accepted.len() as u64;
+    shared.stats.changes.fetch_add(n, Ordering::Relaxed);
+    let mut tasks = shared.tasks.lock();
+    for req in accepted {
+        let c = &req.change;
+        if let Some(e) = tasks.get_mut(&c.task) {
+            e.pool = c.pool.clone();
+            e.counters = c.counters;
+        }
+        log.in_log.insert(c.task.clone());
+        reply(req, Ok(()));
+    }
+}
+
+/// Snapshots every task whose pool is newer than its snapshot, then empties the log.
+pub(super) fn checkpoint(shared: &Shared, log: &mut Log) -> Result<(), StoreError> {
+    let dirty: Vec<_> = shared
+        .tasks
+        .lock()
+        .iter()
+        .filter(|(_, e)| e.is_dirty())
+        .map(|(id, e)| {
+            (
+                id.clone(),
+                e.dir.clone(),
+                e.pool.clone(),
+                e.counters,
+                e.snap_seqs.clone(),
+            )
+        })
+        .collect();
+    for (id, dir, pool, counters, listed) in dirty {
+        let seqs = write_snapshot(&dir, &pool, counters, &listed, &shared.stats.syncs)?;
+        if let Some(e) = shared.tasks.lock().get_mut(&id) {
+            e.snapshot_written(pool.version(), seqs);
+        }
+    }
+    truncate(shared, log)
+}
+
+/// Empties the log (keeping its header) and makes that durable before anything more is
+/// appended, so that no stale group can reappear behind new ones. Only called when every
+/// record in it is in a snapshot.
+pub(super) fn truncate(shared: &Shared, log: &mut Log) -> Result<(), StoreError> {
+    if log.len > HEADER_LEN {
+        shared.stats.syncs.add();
+        log.file
+            .set_len(HEADER_LEN)
+            .and_then(|()| log.file.sync_all())
+            .map_err(|e| err(&log.path, format!("truncate: {e}")))?;
+    }
+    log.len = HEADER_LEN;
+    log.in_log.clear();
+    log.compact_at = shared.log_limit.max(HEADER_LEN + 1);
+    Ok(())
+}
