@@ -649,6 +649,37 @@ async fn corrupt_or_truncated_state_is_refused_naming_the_file() {
     assert_refused(d.path(), &f, "trajectory format 2").await;
 }
 
+/// The commit log (`commits.log`) holds the changes since the snapshots: a flipped byte
+/// in a group that is not the last one is corruption, refused naming the log.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_corrupt_commit_log_is_refused_naming_it() {
+    use std::sync::Arc;
+    use tamrm::core::ActionSeq;
+    use tamrm::store::{Counters, DiskStore, PoolOp, Store};
+    let base = tempfile::tempdir().unwrap();
+    base_data_dir(base.path()).await;
+    {
+        // Two changes left in the log by a crash: the store dropped without a flush.
+        let s = DiskStore::open(base.path()).unwrap();
+        let mut pool = Arc::new(s.load().await.unwrap().remove(0).pool);
+        for score in [4.0, 5.0] {
+            let ops = vec![PoolOp::Offer {
+                actions: ActionSeq::Discrete(vec![1, 2]),
+                score,
+            }];
+            pool = s
+                .commit("t", pool, ops, Counters::default())
+                .await
+                .unwrap()
+                .pool;
+        }
+    }
+    let log = base.path().join("commits.log");
+    // Header (12 bytes), then the first group's head and its first record.
+    flip_byte(&log, 12 + 16);
+    assert_refused(base.path(), &log, "flipped byte in the commit log").await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unfinished_changes_are_cleaned_up_at_start() {
     let base = tempfile::tempdir().unwrap();
