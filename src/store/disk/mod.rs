@@ -413,8 +413,14 @@ impl Store for DiskStore {
         counters: Counters,
     ) -> Result<Committed, StoreError> {
         let shared = &self.inner.shared;
-        let known = shared.entry(id)?.pool.version();
-        check_version(id, Some(known), &base)?;
+        let known = shared.tasks.lock().get(id).map(|e| e.pool.version());
+        if known.is_none() {
+            return Err(err(
+                &shared.tasks_dir(),
+                format!("task {id:?} has no directory"),
+            ));
+        }
+        check_version(id, known, &base)?;
         let (pool, changed) = apply_ops(&base, ops);
         let pool = Arc::new(pool);
         if pool.version() != base.version() {
