@@ -41,9 +41,24 @@ def server(server_binary: str) -> Iterator[tamrm.LocalServer]:
 
 
 @pytest.fixture(scope="session")
-def client(server: tamrm.LocalServer) -> Iterator[tamrm.Client]:
+def remote_client(server: tamrm.LocalServer) -> Iterator[tamrm.Client]:
     with tamrm.Client(server.address) as c:
         yield c
+
+
+@pytest.fixture(scope="session")
+def engine() -> Iterator[tamrm.Engine]:
+    with tamrm.Engine() as e:
+        yield e
+
+
+@pytest.fixture(params=["remote", "engine"])
+def client(request: pytest.FixtureRequest) -> tamrm.Client:
+    """Every test written against a client runs twice: on a real server through
+    ``tamrm.Client``, and in-process on ``tamrm.Engine`` (same methods, same answers)."""
+    if request.param == "engine":
+        return request.getfixturevalue("engine")  # type: ignore[no-any-return]
+    return request.getfixturevalue("remote_client")  # type: ignore[no-any-return]
 
 
 @pytest.fixture

@@ -29,13 +29,19 @@ def test_client_pickles_by_address_and_settings(server: tamrm.LocalServer, task_
         assert copy.deepcopy(client) is client  # a handle: not duplicated by deepcopy
 
 
-def test_client_with_credentials_does_not_pickle(server: tamrm.LocalServer) -> None:
-    import grpc
+@pytest.fixture
+def client(remote_client: tamrm.Client) -> tamrm.Client:
+    # Pickling is the remote client's: an engine lives in one process.
+    return remote_client
 
-    creds = grpc.ssl_channel_credentials()
-    with tamrm.Client(server.address, credentials=creds) as client:
-        with pytest.raises(TypeError, match="credentials"):
-            pickle.dumps(client)
+
+def test_engine_and_its_sessions_do_not_pickle(engine: tamrm.Engine, task_id: str) -> None:
+    with pytest.raises(TypeError, match="tamrm serve"):
+        pickle.dumps(engine)
+    engine.create_task(task_id, num_actions=2)
+    with engine.session(task_id, 2) as session:
+        with pytest.raises(TypeError, match="tamrm serve"):
+            pickle.dumps(session)
 
 
 def test_session_pickles_as_a_new_session(client: tamrm.Client, task_id: str) -> None:

@@ -7,7 +7,8 @@ episode whose action prefix resembles the best stored episodes (k nearest neighb
 
 Main entry points:
 
-- :class:`Client` (and :mod:`tamrm.aio` for asyncio): task management and sessions.
+- :class:`Engine`: the shaping engine in-process (no server), the default for one learner.
+- :class:`Client` (and :mod:`tamrm.aio` for asyncio): the same methods against a server.
 - :meth:`Client.session` -> :class:`Session`: one stream, one round trip per vector step.
 - :mod:`tamrm.gym`: ``ShapedReward`` / ``VectorShapedReward`` gymnasium wrappers.
 - :mod:`tamrm.sb3`: ``ShapedVecEnv`` for Stable-Baselines3 (extra ``tamrm[sb3]``).
@@ -20,6 +21,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from tamrm._client import DEFAULT_ADDRESS, DEFAULT_TIMEOUT, Client
+from tamrm._engine import Engine
 from tamrm._errors import (
     AlreadyExists,
     DeadlineExceeded,
@@ -60,6 +62,7 @@ __all__ = [
     "AlreadyExists",
     "Client",
     "DeadlineExceeded",
+    "Engine",
     "FailedPrecondition",
     "InvalidArgument",
     "LocalServer",

@@ -23,7 +23,18 @@ from tamrm._errors import InvalidArgument
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import TaskConfig
 
-__all__ = ["PreparedBatch", "StepInput", "abandon_ids", "prepare_batch", "prepare_trajectory"]
+__all__ = [
+    "PreparedBatch",
+    "StepInput",
+    "abandon_ids",
+    "checked_actions",
+    "checked_env_ids",
+    "checked_flags",
+    "checked_real",
+    "checked_scores",
+    "prepare_batch",
+    "prepare_trajectory",
+]
 
 _UINT32_MAX = 2**32 - 1
 
@@ -80,7 +91,7 @@ def _check_shape(name: str, arr: npt.NDArray[Any], shape: tuple[int, ...]) -> No
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-def _real(name: str, value: object, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
+def checked_real(name: str, value: object, shape: tuple[int, ...]) -> npt.NDArray[np.float64]:
     arr = _array(name, value)
     if arr.dtype.kind not in "iuf":
         raise TypeError(f"{name} must hold real numbers (int or float), got dtype {arr.dtype}")
@@ -115,7 +126,7 @@ def _finite(name: str, arr: npt.NDArray[Any], float32: bool, rows: list[int] | N
     )
 
 
-def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
+def checked_flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
     if value is None:
         return np.zeros(size, dtype=np.bool_)
     arr = _array(name, value)
@@ -130,13 +141,8 @@ def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_]:
     return arr.astype(np.bool_, copy=False)
 
 
-def _add_actions(
-    batch: pb.StepBatch, config: TaskConfig, value: object, size: int
-) -> npt.NDArray[Any]:
-    """Check the actions against the task, write them to ``actions``/``action_vectors``.
-
-    Returns the actions as sent (``int64`` or ``float32``).
-    """
+def checked_actions(config: TaskConfig, value: object, size: int) -> npt.NDArray[Any]:
+    """Check the actions against the task: ``int64`` ``(B,)`` or ``float32`` ``(B, action_dim)``."""
     arr = _array("actions", value)
     shape: tuple[int, ...]
     if config.discrete:
@@ -149,20 +155,28 @@ def _add_actions(
     _check_shape("actions", arr, shape)
     if not config.discrete:
         _finite("actions", arr.astype(np.float64, copy=False), float32=True)
-        vectors = arr.astype(np.float32, copy=False)
-        batch.action_vectors.extend(vectors.ravel().tolist())
-        return vectors
+        return arr.astype(np.float32, copy=False)
     if arr.size:
         lo, hi = int(arr.min()), int(arr.max())
         if lo < 0 or hi >= config.num_actions:
             bad = lo if lo < 0 else hi
             raise ValueError(f"actions must be in 0..{config.num_actions - 1}, got {bad}")
-    ints = arr.astype(np.int64, copy=False)
-    batch.actions.extend(ints.tolist())
-    return ints
+    return arr.astype(np.int64, copy=False)
 
 
-def _env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | None:
+def _add_actions(
+    batch: pb.StepBatch, config: TaskConfig, value: object, size: int
+) -> npt.NDArray[Any]:
+    """Check the actions, write them to ``actions``/``action_vectors``; return them as sent."""
+    arr = checked_actions(config, value, size)
+    if config.discrete:
+        batch.actions.extend(arr.tolist())
+    else:
+        batch.action_vectors.extend(arr.ravel().tolist())
+    return arr
+
+
+def checked_env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | None:
     """The ``env_ids`` argument as ``int64``, or ``None`` for "row i is env i"."""
     if value is None:
         return None
@@ -200,18 +214,18 @@ def _add_values(batch: pb.StepBatch, config: TaskConfig, step: StepInput, size: 
             ("next_q_values", step.next_q_values, batch.next_q_values, shape),
         ]
     for name, value, field, shape in columns:
-        arr = _real(name, value, shape)
+        arr = checked_real(name, value, shape)
         _finite(name, arr, float32=True)
         field.extend(arr.ravel().tolist())
 
 
-def _scores(
+def checked_scores(
     value: npt.ArrayLike | Mapping[int, float], done: npt.NDArray[np.bool_]
 ) -> dict[int, float]:
     """``{row: score}`` from the ``episode_scores`` argument (an array or a mapping)."""
     size = int(done.shape[0])
     if not isinstance(value, Mapping):
-        sc = _real("episode_scores", value, (size,))
+        sc = checked_real("episode_scores", value, (size,))
         rows = np.flatnonzero(done & ~np.isnan(sc))
         return dict(zip(rows.tolist(), sc[rows].tolist(), strict=True))
     scores: dict[int, float] = {}
@@ -234,14 +248,14 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
         ValueError: An argument has the wrong shape or an out-of-range entry.
         InvalidArgument: A number is not finite or does not fit its 32-bit field.
     """
-    given_ids = _env_ids(step.env_ids, num_envs)
+    given_ids = checked_env_ids(step.env_ids, num_envs)
     ids = np.arange(num_envs, dtype=np.int64) if given_ids is None else given_ids
     size = int(ids.shape[0])
 
-    rew = _real("rewards", step.rewards, (size,))
+    rew = checked_real("rewards", step.rewards, (size,))
     _finite("rewards", rew, float32=False)
-    term = _flags("terminated", step.terminated, size)
-    trunc = _flags("truncated", step.truncated, size)
+    term = checked_flags("terminated", step.terminated, size)
+    trunc = checked_flags("truncated", step.truncated, size)
     done = term | trunc
 
     batch = pb.StepBatch(
@@ -254,7 +268,7 @@ def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> Prepare
     actions = _add_actions(batch, config, step.actions, size)
     _add_values(batch, config, step, size)
     if step.episode_scores is not None:
-        scores = _scores(step.episode_scores, done)
+        scores = checked_scores(step.episode_scores, done)
         _finite("episode_scores", np.array(list(scores.values())), False, list(scores))
         for key, score in scores.items():
             batch.episode_scores[key] = score

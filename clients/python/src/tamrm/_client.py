@@ -9,10 +9,14 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import grpc
 import numpy.typing as npt
+from google.protobuf import message_factory
+from google.protobuf.message import Message
 
+from tamrm import _native
 from tamrm import _ops as ops
 from tamrm._closing import Closing
-from tamrm._errors import Unavailable, from_rpc_error
+from tamrm._errors import from_native
+from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, Task, TaskOptions
@@ -26,6 +30,7 @@ __all__ = [
     "DEFAULT_TIMEOUT",
     "Client",
     "ClientCore",
+    "TaskCalls",
     "make_channel_options",
     "parse_target",
 ]
@@ -150,58 +155,48 @@ class ClientCore:
 
 
 def _rebuild_client(
-    cls: type[ClientCore],
+    cls: type[Any],
     target: str,
     timeout: float | None,
     options: Sequence[tuple[str, Any]] | None,
     metadata: Sequence[tuple[str, str]] | None,
-) -> ClientCore:
+) -> Any:
+    if options is None:
+        return cls(target, timeout=timeout, metadata=metadata)
     return cls(target, timeout=timeout, options=options, metadata=metadata)
 
 
-class Client(ClientCore, Closing):
-    """A connection to a tamrm server.
+def _response_types() -> dict[str, type[Message]]:
+    """Each ``Shaping`` method's response message class, from the proto's descriptor."""
+    service = pb.DESCRIPTOR.services_by_name["Shaping"]
+    return {
+        m.name: message_factory.GetMessageClass(m.output_type)
+        for m in service.methods
+        if not m.client_streaming
+    }
 
-    Every method takes and returns plain Python / numpy values and raises a
-    :class:`tamrm.TamrmError` subclass (:class:`tamrm.TaskNotFound`,
-    :class:`tamrm.InvalidArgument`, ...) carrying the server's message on failure.
 
-    Example::
+_RESPONSES = _response_types()
 
-        with tamrm.Client("127.0.0.1:50051") as client:
-            client.create_task("cartpole", num_actions=2)
-            with client.session("cartpole", num_envs=8) as session:
-                shaped = session.step(actions, rewards, terminated, truncated)
 
-    A client pickles by its address and settings (not with ``credentials``): the
-    unpickled copy, e.g. in a ``SubprocVecEnv`` worker, opens its own connection.
+class TaskCalls:
+    """The task methods of :class:`Client` and :class:`tamrm.Engine`, written once.
 
-    Args:
-        target: The server address, ``host:port`` (surrounding whitespace is ignored; a
-            gRPC target with a scheme such as ``unix:/path`` is passed through). Default:
-            the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
-        timeout: Deadline in seconds of each unary call (``None``: no deadline).
-        credentials: Channel credentials for TLS; ``None`` for a plaintext channel.
-        options: Extra gRPC channel options.
-        metadata: Metadata (e.g. an authorization header) sent with every call.
+    A subclass provides ``_invoke(method, request_bytes) -> response_bytes`` (raising
+    ``tamrm._native.StatusError``) and a ``_transport`` that opens sessions.
     """
 
-    def _make_channel(
-        self,
-        target: str,
-        credentials: grpc.ChannelCredentials | None,
-        options: list[tuple[str, Any]],
-    ) -> grpc.Channel:
-        if credentials is None:
-            return grpc.insecure_channel(target, options=options)
-        return grpc.secure_channel(target, credentials, options=options)
+    _transport: Any
+
+    def _invoke(self, method: str, request: bytes) -> bytes:
+        raise NotImplementedError
 
     def _call(self, rpc: ops.Rpc) -> Any:
-        method = getattr(self._stub, rpc.method)
         try:
-            return method(rpc.request, timeout=self.timeout, metadata=self._metadata)
-        except grpc.RpcError as exc:
-            raise from_rpc_error(exc) from None
+            answer = self._invoke(rpc.method, rpc.request.SerializeToString())
+        except _native.StatusError as exc:
+            raise from_native(exc) from None
+        return _RESPONSES[rpc.method].FromString(answer)
 
     def _run(self, op: ops.Op[_T]) -> _T:
         return ops.run(op, self._call)
@@ -294,9 +289,9 @@ class Client(ClientCore, Closing):
     # -- sessions --------------------------------------------------------------------
 
     def session(self, task_id: str, num_envs: int = 1) -> Session:
-        """Open a ``Shape`` stream for ``num_envs`` environments of a task.
+        """Open a session for ``num_envs`` environments of a task.
 
-        The stream opens immediately (the server's answer is in ``session.task``). Use
+        The stream opens immediately (the answer to ``Open`` is in ``session.task``). Use
         the session as a context manager so that it is closed.
 
         Raises:
@@ -305,22 +300,77 @@ class Client(ClientCore, Closing):
         """
         return Session(self, task_id, num_envs)
 
+
+class Client(TaskCalls, Closing):
+    """A connection to a tamrm server.
+
+    Every method takes and returns plain Python / numpy values and raises a
+    :class:`tamrm.TamrmError` subclass (:class:`tamrm.TaskNotFound`,
+    :class:`tamrm.InvalidArgument`, ...) carrying the server's message on failure. The
+    transport is native (tonic, in the ``tamrm._native`` extension): a session's round
+    trip runs in Rust with the GIL released. :class:`tamrm.Engine` has the same methods
+    without a server.
+
+    Example::
+
+        with tamrm.Client("127.0.0.1:50051") as client:
+            client.create_task("cartpole", num_actions=2)
+            with client.session("cartpole", num_envs=8) as session:
+                shaped = session.step(actions, rewards, terminated, truncated)
+
+    A client pickles by its address and settings: the unpickled copy, e.g. in a
+    ``SubprocVecEnv`` worker, opens its own connection.
+
+    Args:
+        target: The server address, ``host:port`` (surrounding whitespace is ignored).
+            Default: the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
+        timeout: Deadline in seconds of each unary call (``None``: no deadline).
+        metadata: Metadata (e.g. an authorization header) sent with every call.
+    """
+
+    def __init__(
+        self,
+        target: str | None = None,
+        *,
+        timeout: float | None = DEFAULT_TIMEOUT,
+        metadata: Sequence[tuple[str, str]] | None = None,
+    ) -> None:
+        self.target = parse_target(target)
+        self.timeout = timeout
+        self._metadata = tuple(metadata) if metadata else None
+        self._transport: _native.Channel
+        try:
+            self._transport = _native.Channel(self.target, list(self._metadata or ()))
+        except _native.StatusError as exc:
+            raise from_native(exc) from None
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
+        # AsyncVectorEnv worker) opens its own connection.
+        return (_rebuild_client, (type(self), self.target, self.timeout, None, self._metadata))
+
+    def __deepcopy__(self, memo: dict[int, object]) -> Client:
+        # A handle on a connection, like the sessions: deep copies are the same client.
+        return self
+
+    def _invoke(self, method: str, request: bytes) -> bytes:
+        return self._transport.call(method, request, self.timeout)
+
     # -- lifecycle -------------------------------------------------------------------
 
     def wait_ready(self, timeout: float = 10.0) -> None:
-        """Block until the channel is connected.
+        """Block until a connection to the server can be established.
 
         Raises:
             Unavailable: Not connected within ``timeout`` seconds.
         """
         try:
-            grpc.channel_ready_future(self._channel).result(timeout=timeout)
-        except grpc.FutureTimeoutError:
-            raise Unavailable(f"could not connect to {self.target} in {timeout}s") from None
+            self._transport.wait_ready(timeout)
+        except _native.StatusError as exc:
+            raise from_native(exc) from None
 
     def close(self) -> None:
-        """Close the channel (open sessions are cancelled)."""
-        self._channel.close()
+        """Close the client (its connection closes once its sessions are closed too)."""
 
     def __repr__(self) -> str:
         return f"<tamrm.Client target={self.target!r}>"

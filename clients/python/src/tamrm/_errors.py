@@ -19,6 +19,7 @@ __all__ = [
     "TamrmError",
     "TaskNotFound",
     "Unavailable",
+    "from_native",
     "from_rpc_error",
     "from_status",
 ]
@@ -123,6 +124,15 @@ def from_rpc_error(err: grpc.RpcError) -> TamrmError:
     if not details:
         details = str(err)
     return from_status(code, details)
+
+
+_BY_NUMBER: dict[int, grpc.StatusCode] = {code.value[0]: code for code in grpc.StatusCode}
+
+
+def from_native(err: BaseException) -> TamrmError:
+    """Translate the native extension's ``StatusError(code, message)`` to a :class:`TamrmError`."""
+    number, message = err.args if len(err.args) == 2 else (2, str(err))
+    return from_status(_BY_NUMBER.get(int(number), grpc.StatusCode.UNKNOWN), str(message))
 
 
 def from_status(code: grpc.StatusCode, details: str | None) -> TamrmError:

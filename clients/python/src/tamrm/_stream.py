@@ -135,51 +135,10 @@ class SessionCore(Generic[_R]):
         episode_scores: npt.ArrayLike | Mapping[int, float] | None = None,
         env_ids: npt.ArrayLike | None = None,
     ) -> _R:
-        """Shape one vector step: one row per environment (or per entry of ``env_ids``).
+        """Shape one vector step; arguments, result and errors as :meth:`tamrm.Session.step`.
 
         On an :class:`tamrm.aio.AsyncSession` this returns an awaitable (``await
         session.step(...)``); the arguments are checked when it is awaited.
-
-        Args:
-            actions: The actions taken: integers of shape ``(B,)`` for a discrete task,
-                reals of shape ``(B, action_dim)`` for a continuous one.
-            rewards: The environment rewards R, shape ``(B,)``.
-            terminated: Booleans ``(B,)``: the step reached a terminal state (V(s') is
-                taken as 0). ``None`` means all false.
-            truncated: Booleans ``(B,)``: the step hit a time limit (the sent V(s') is
-                used). ``None`` means all false.
-            values: V(s) per row, shape ``(B,)``; give together with ``next_values``.
-            next_values: V(s') per row, shape ``(B,)`` (the real last observation's
-                value on a truncation, not the reset observation's).
-            q_values: Q(s, ·) per row, shape ``(B, num_actions)``, discrete tasks only;
-                give together with ``next_q_values``, not with ``values``.
-            next_q_values: Q(s', ·), shape ``(B, num_actions)``.
-            episode_scores: Episode scores for rows that end an episode, either as an
-                array ``(B,)`` (entries on rows that do not end an episode, and NaN
-                entries, are ignored) or as a mapping ``{row: score}``. Rows without a
-                score use the sum of the episode's environment rewards.
-            env_ids: Optional integers ``(B,)``: the environment of each row, for
-                sending a subset of the environments (e.g. skipping autoreset steps).
-                ``None`` means row i is environment i and B = ``num_envs``.
-
-        Returns:
-            The shaped rewards and their parts, one row per row sent. With ``B == 0``
-            nothing is sent and an empty result is returned.
-
-        Raises:
-            TypeError, ValueError: An argument has the wrong dtype or shape (nothing was
-                sent; the session stays usable).
-            InvalidArgument: A number is not finite or too large for its 32-bit field
-                (caught before sending: nothing was sent, the session stays usable), or
-                the server rejected the batch (e.g. a score on a non-final entry).
-            TaskNotFound: The task was deleted.
-            SessionClosed: The session was closed or an earlier step failed.
-
-            A batch the server rejects (``InvalidArgument``) changes nothing (SPEC §8):
-            the session re-opens its stream, resuming every episode in progress (SPEC
-            §9), before raising, so the next step goes on as if the bad batch had never
-            been sent. After any other server error the stream is closed; open a new
-            session (or call :meth:`restart`) to continue.
         """
         return self._exchange(
             StepInput(

@@ -1,0 +1,234 @@
+//! `tamrm.Engine`: the server's registry, stores and session layer in-process. The unary
+//! calls go through the server's own `Shaping` implementation (same checks, same
+//! statuses); streams are `session::StreamSession`s fed straight from numpy columns.
+
+use std::sync::Arc;
+
+use prost::Message;
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use tamrm::core::ActionSpace;
+use tamrm::limits::Limits;
+use tamrm::proto::shaping_server::Shaping;
+use tamrm::registry::Registry;
+use tamrm::service::{convert, ShapingService};
+use tamrm::session::{OpenRequest, StreamSession};
+use tamrm::store::{DiskStore, MemoryStore, Store};
+use tokio::runtime::Runtime;
+use tokio_util::sync::CancellationToken;
+use tonic::{Code, Request, Status};
+
+use crate::columns::{Answer, Prepared};
+use crate::stream::{NativeStream, Transport};
+use crate::{runtime, status, status_error};
+
+/// The embedded engine (`tamrm._native.Engine`).
+#[pyclass(frozen, module = "tamrm._native")]
+pub struct Engine {
+    registry: Arc<Registry>,
+    service: ShapingService,
+    rt: &'static Runtime,
+    description: String,
+}
+
+/// One stream of the embedded engine.
+pub(crate) struct EngineStream {
+    session: Option<StreamSession>,
+    registry: Arc<Registry>,
+    task_id: String,
+    num_envs: u32,
+    client_id: String,
+    rt: &'static Runtime,
+}
+
+fn encode(msg: &impl Message) -> Vec<u8> {
+    msg.encode_to_vec()
+}
+
+fn decode<M: Message + Default>(bytes: &[u8]) -> Result<M, Status> {
+    M::decode(bytes).map_err(|e| {
+        Status::invalid_argument(format!("request: not a valid protobuf message ({e})"))
+    })
+}
+
+/// Runs one unary call of `service` on request bytes, answering response bytes.
+pub(crate) async fn call_service(
+    service: &ShapingService,
+    method: &str,
+    bytes: &[u8],
+) -> Result<Vec<u8>, Status> {
+    Ok(match method {
+        "CreateTask" => encode(
+            service
+                .create_task(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "GetTask" => encode(
+            service
+                .get_task(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "ListTasks" => encode(
+            service
+                .list_tasks(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "DeleteTask" => encode(
+            service
+                .delete_task(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "ResetPool" => encode(
+            service
+                .reset_pool(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "GetPool" => encode(
+            service
+                .get_pool(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        "AddTrajectory" => encode(
+            service
+                .add_trajectory(Request::new(decode(bytes)?))
+                .await?
+                .get_ref(),
+        ),
+        other => return Err(Status::unimplemented(format!("no method {other:?}"))),
+    })
+}
+
+/// The action facts of a task: (num_actions, action_dim); one of them is 0.
+pub(crate) fn action_facts(space: ActionSpace) -> (u32, usize) {
+    match space {
+        ActionSpace::Discrete { num_actions } => (num_actions, 0),
+        ActionSpace::Continuous { action_dim } => (0, action_dim as usize),
+    }
+}
+
+#[pymethods]
+impl Engine {
+    /// An engine over `data_dir` (a `tamrm serve --data-dir` directory, created if
+    /// missing; locked while the engine is open) or, with `None`, in memory.
+    #[new]
+    #[pyo3(signature = (data_dir=None))]
+    fn new(py: Python<'_>, data_dir: Option<std::path::PathBuf>) -> PyResult<Engine> {
+        let rt = runtime()?;
+        let store: Arc<dyn Store> = match &data_dir {
+            Some(dir) => Arc::new(
+                DiskStore::open(dir)
+                    .map_err(|e| status(Code::FailedPrecondition, e.to_string()))?,
+            ),
+            None => Arc::new(MemoryStore::new()),
+        };
+        let description = store.describe();
+        let (registry, _restored) = py
+            .detach(|| rt.block_on(Registry::open(store, Limits::default())))
+            .map_err(|e| status(Code::FailedPrecondition, e.to_string()))?;
+        let registry = Arc::new(registry);
+        let service = ShapingService::new(registry.clone(), CancellationToken::new());
+        Ok(Engine {
+            registry,
+            service,
+            rt,
+            description,
+        })
+    }
+
+    /// One unary call: `method` is the `Shaping` RPC's name, `request` its serialized
+    /// request; returns the serialized response.
+    fn call<'py>(
+        &self,
+        py: Python<'py>,
+        method: &str,
+        request: &[u8],
+    ) -> PyResult<Bound<'py, PyBytes>> {
+        let service = &self.service;
+        let rt = self.rt;
+        let out = py
+            .detach(|| rt.block_on(call_service(service, method, request)))
+            .map_err(|s| status_error(&s))?;
+        Ok(PyBytes::new(py, &out))
+    }
+
+    /// Opens a session on `task_id` for `num_envs` environments.
+    fn open(
+        &self,
+        py: Python<'_>,
+        task_id: &str,
+        num_envs: u32,
+        client_id: &str,
+    ) -> PyResult<NativeStream> {
+        let mut stream = EngineStream {
+            session: None,
+            registry: self.registry.clone(),
+            task_id: task_id.to_string(),
+            num_envs,
+            client_id: client_id.to_string(),
+            rt: self.rt,
+        };
+        py.detach(|| stream.reopen())
+            .map_err(|s| status_error(&s))?;
+        let Some(session) = &stream.session else {
+            return Err(status(Code::Internal, "the session did not open"));
+        };
+        let opened = convert::task_proto(session.task()).encode_to_vec();
+        let (num_actions, action_dim) = action_facts(session.task().config().action_space);
+        Ok(NativeStream::new(
+            Transport::Engine(stream),
+            opened,
+            num_envs as usize,
+            num_actions,
+            action_dim,
+        ))
+    }
+
+    /// Persists the task counters (pools are durable at every change already).
+    fn flush(&self, py: Python<'_>) {
+        let registry = &self.registry;
+        let rt = self.rt;
+        py.detach(|| rt.block_on(registry.flush_counters()));
+    }
+
+    /// The store, in one line.
+    #[getter]
+    fn description(&self) -> &str {
+        &self.description
+    }
+}
+
+impl EngineStream {
+    /// Shapes one batch in-process.
+    pub fn step(&mut self, batch: &Prepared) -> Result<Answer, Status> {
+        let Some(session) = self.session.as_mut() else {
+            return Err(Status::cancelled("the session is closed"));
+        };
+        let rt = self.rt;
+        let shaped = rt.block_on(session.step(&batch.batch()))?;
+        Ok(Answer::from_outputs(shaped.outputs, shaped.pool_version))
+    }
+
+    /// Ends the session: its episodes in progress are discarded.
+    pub fn close(&mut self) {
+        self.session = None;
+    }
+
+    /// (Re-)opens the session with new episodes everywhere.
+    pub fn reopen(&mut self) -> Result<(), Status> {
+        self.session = None;
+        let req = OpenRequest {
+            task_id: &self.task_id,
+            num_envs: self.num_envs,
+            resume: &[],
+            client_id: &self.client_id,
+        };
+        self.session = Some(StreamSession::open(&self.registry, &req)?);
+        Ok(())
+    }
+}

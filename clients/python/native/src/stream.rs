@@ -1,0 +1,308 @@
+//! One shaping session as Python sees it (`tamrm.Session` wraps it): the columns in, the
+//! transport's round trip with the GIL released, the answer out as numpy arrays.
+
+use std::sync::Mutex;
+
+use numpy::{IntoPyArray, PyArray1};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use tonic::Code;
+
+use crate::columns::{Answer, Prepared, Shape, StepArgs};
+use crate::tracker::Tracker;
+use crate::{engine, remote, status};
+
+/// Why a step failed.
+pub(crate) enum StepError {
+    /// The server's (or the engine's) answer.
+    Status(tonic::Status),
+    /// A signal handler raised (Ctrl-C) while waiting: the stream is gone.
+    Interrupted(PyErr),
+}
+
+impl From<tonic::Status> for StepError {
+    fn from(s: tonic::Status) -> StepError {
+        StepError::Status(s)
+    }
+}
+
+/// Where a stream's batches go.
+pub(crate) enum Transport {
+    /// The embedded engine: the session layer in-process.
+    Engine(engine::EngineStream),
+    /// A `Shape` stream to a server.
+    Remote(remote::RemoteStream),
+}
+
+impl Transport {
+    /// Shapes one batch. A rejected batch (INVALID_ARGUMENT) changed nothing: a remote
+    /// stream is re-opened with every episode resumed before the error is returned.
+    fn step(&mut self, batch: &Prepared, tracker: &Tracker) -> Result<Answer, StepError> {
+        match self {
+            Transport::Engine(e) => e.step(batch).map_err(StepError::Status),
+            Transport::Remote(r) => r.step(batch, tracker),
+        }
+    }
+
+    fn close(&mut self) {
+        match self {
+            Transport::Engine(e) => e.close(),
+            Transport::Remote(r) => r.close(),
+        }
+    }
+}
+
+pub(crate) struct Inner {
+    transport: Transport,
+    tracker: Tracker,
+    shape: Shape,
+    prepared: Prepared,
+    closed: bool,
+}
+
+/// An open session: `tamrm._session.Session` holds one.
+#[pyclass(frozen, module = "tamrm._native")]
+pub struct NativeStream {
+    inner: Mutex<Inner>,
+    /// The `Task` message answering `Open`, encoded.
+    opened: Vec<u8>,
+}
+
+/// What a step returns to Python: the answer's columns and the pool version.
+type StepAnswer<'py> = (
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<bool>>,
+    u64,
+);
+
+impl NativeStream {
+    pub(crate) fn new(
+        transport: Transport,
+        opened: Vec<u8>,
+        num_envs: usize,
+        num_actions: u32,
+        action_dim: usize,
+    ) -> NativeStream {
+        let keep = matches!(transport, Transport::Remote(_));
+        NativeStream {
+            inner: Mutex::new(Inner {
+                transport,
+                tracker: Tracker::new(num_envs, action_dim, keep),
+                shape: Shape {
+                    num_envs,
+                    num_actions,
+                },
+                prepared: Prepared::default(),
+                closed: false,
+            }),
+            opened,
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+fn closed_error() -> PyErr {
+    status(Code::Cancelled, "the session is closed")
+}
+
+#[pymethods]
+impl NativeStream {
+    /// The `Task` message the server answered `Open` with (serialized).
+    #[getter]
+    fn opened<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        PyBytes::new(py, &self.opened)
+    }
+
+    /// Shapes one step. Arrays as documented in `tamrm._session`; returns
+    /// `(rewards, knn_rewards, potentials, steps, knn_active, pool_version)`.
+    #[pyo3(signature = (env_ids, actions, rewards, terminated, truncated, values, next_values, q_values, next_q_values, score_rows, score_values))]
+    #[allow(clippy::too_many_arguments)]
+    fn step<'py>(
+        &self,
+        py: Python<'py>,
+        env_ids: Option<Bound<'py, PyAny>>,
+        actions: Bound<'py, PyAny>,
+        rewards: Bound<'py, PyAny>,
+        terminated: Option<Bound<'py, PyAny>>,
+        truncated: Option<Bound<'py, PyAny>>,
+        values: Option<Bound<'py, PyAny>>,
+        next_values: Option<Bound<'py, PyAny>>,
+        q_values: Option<Bound<'py, PyAny>>,
+        next_q_values: Option<Bound<'py, PyAny>>,
+        score_rows: Option<Bound<'py, PyAny>>,
+        score_values: Option<Bound<'py, PyAny>>,
+    ) -> PyResult<StepAnswer<'py>> {
+        let mut guard = self.lock();
+        let inner = &mut *guard;
+        if inner.closed {
+            return Err(closed_error());
+        }
+        let args = StepArgs {
+            env_ids: env_ids.as_ref(),
+            actions: &actions,
+            rewards: &rewards,
+            terminated: terminated.as_ref(),
+            truncated: truncated.as_ref(),
+            values: values.as_ref().zip(next_values.as_ref()),
+            q_values: q_values.as_ref().zip(next_q_values.as_ref()),
+            scores: score_rows.as_ref().zip(score_values.as_ref()),
+        };
+        inner.prepared.fill(py, inner.shape, &args)?;
+        let b = inner.prepared.len();
+        if b == 0 {
+            // Nothing is sent; pending abandons wait for a batch with entries.
+            let pool_version = 0;
+            return Ok(answer_arrays(py, Answer::default(), pool_version));
+        }
+        inner.tracker.take_abandons(&mut inner.prepared.abandon);
+        let result = {
+            let Inner {
+                transport,
+                tracker,
+                prepared,
+                ..
+            } = &mut *inner;
+            py.detach(|| transport.step(prepared, tracker))
+        };
+        let answer = match result {
+            Ok(answer) => answer,
+            Err(StepError::Interrupted(interrupt)) => {
+                inner.closed = true;
+                inner.tracker.discard_episodes();
+                return Err(interrupt);
+            }
+            Err(StepError::Status(err)) => {
+                if err.code() == Code::InvalidArgument {
+                    // Rejected, nothing applied: the stream goes on (re-opened if remote);
+                    // the abandons travel with the next batch.
+                    let sent = std::mem::take(&mut inner.prepared.abandon);
+                    inner.tracker.restore_abandons(&sent);
+                    if let Transport::Remote(r) = &inner.transport {
+                        if r.broken() {
+                            inner.closed = true;
+                            inner.tracker.discard_episodes();
+                        }
+                    }
+                } else {
+                    inner.closed = true;
+                    inner.transport.close();
+                    inner.tracker.discard_episodes();
+                }
+                return Err(crate::status_error(&err));
+            }
+        };
+        if answer.consistent_len() != Some(b) {
+            inner.closed = true;
+            inner.transport.close();
+            return Err(status(
+                Code::Internal,
+                format!(
+                    "the server answered {} entries for a batch of {b}",
+                    answer.rewards.len()
+                ),
+            ));
+        }
+        if let Some((env, step)) = inner.tracker.ignored_abandon(&inner.prepared, &answer) {
+            inner.closed = true;
+            inner.transport.close();
+            return Err(status(
+                Code::Unimplemented,
+                format!(
+                    "the server ignored StepBatch.abandon (SPEC v1.1 §12): env {env} went on \
+                     with its abandoned episode at step {step}; upgrade the server"
+                ),
+            ));
+        }
+        inner.tracker.record(&inner.prepared, &answer);
+        let pool_version = answer.pool_version;
+        Ok(answer_arrays(py, answer, pool_version))
+    }
+
+    /// Drops the current episodes of `envs` (sent with the next batch that has entries).
+    fn abandon(&self, envs: Vec<i64>) -> PyResult<()> {
+        let mut inner = self.lock();
+        if inner.closed {
+            return Err(closed_error());
+        }
+        let n = inner.tracker.num_envs();
+        let mut ids = Vec::with_capacity(envs.len());
+        for e in envs {
+            let id = usize::try_from(e).ok().filter(|&i| i < n).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "abandon: env id {e} is not in 0..{} (num_envs={n})",
+                    n - 1
+                ))
+            })?;
+            if ids.contains(&(id as u32)) {
+                return Err(PyValueError::new_err(format!(
+                    "abandon: env {e} is listed twice"
+                )));
+            }
+            ids.push(id as u32);
+        }
+        inner.tracker.abandon(&ids);
+        Ok(())
+    }
+
+    /// Per env: the steps sent in its current episode.
+    fn episode_steps<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        let inner = self.lock();
+        let steps: Vec<i64> = inner.tracker.steps().iter().map(|&s| s as i64).collect();
+        steps.into_pyarray(py)
+    }
+
+    /// Whether the session is closed (by `close` or a failure).
+    #[getter]
+    fn closed(&self) -> bool {
+        self.lock().closed
+    }
+
+    /// Ends the stream (idempotent); episodes in progress are discarded.
+    fn close(&self, py: Python<'_>) {
+        let mut guard = self.lock();
+        let inner = &mut *guard;
+        if inner.closed {
+            return;
+        }
+        inner.closed = true;
+        inner.tracker.discard_episodes();
+        let transport = &mut inner.transport;
+        py.detach(|| transport.close());
+    }
+
+    /// Re-opens a closed session on the same task (new episodes everywhere).
+    fn reopen(&self, py: Python<'_>) -> PyResult<()> {
+        let mut guard = self.lock();
+        let inner = &mut *guard;
+        inner.tracker.discard_episodes();
+        let Inner {
+            transport, tracker, ..
+        } = inner;
+        py.detach(|| match transport {
+            Transport::Engine(e) => e.reopen(),
+            Transport::Remote(r) => r.reopen(tracker),
+        })
+        .map_err(|s| crate::status_error(&s))?;
+        inner.tracker.reopened();
+        inner.closed = false;
+        Ok(())
+    }
+}
+
+fn answer_arrays(py: Python<'_>, a: Answer, pool_version: u64) -> StepAnswer<'_> {
+    (
+        a.rewards.into_pyarray(py),
+        a.knn_rewards.into_pyarray(py),
+        a.potentials.into_pyarray(py),
+        a.steps.into_pyarray(py),
+        a.knn_active.into_pyarray(py),
+        pool_version,
+    )
+}

@@ -1,0 +1,56 @@
+"""Types of the native extension (``clients/python/native``, built by maturin)."""
+
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+class StatusError(Exception):
+    """A failed call: ``args == (code: int, message: str)``, the gRPC status."""
+
+_Answer = tuple[
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.int64],
+    npt.NDArray[np.bool_],
+    int,
+]
+
+class NativeStream:
+    @property
+    def opened(self) -> bytes: ...
+    @property
+    def closed(self) -> bool: ...
+    def step(
+        self,
+        env_ids: npt.NDArray[np.int64] | None,
+        actions: npt.NDArray[np.generic],
+        rewards: npt.NDArray[np.float64],
+        terminated: npt.NDArray[np.bool_] | None,
+        truncated: npt.NDArray[np.bool_] | None,
+        values: npt.NDArray[np.floating] | None,
+        next_values: npt.NDArray[np.floating] | None,
+        q_values: npt.NDArray[np.floating] | None,
+        next_q_values: npt.NDArray[np.floating] | None,
+        score_rows: npt.NDArray[np.int64] | None,
+        score_values: npt.NDArray[np.float64] | None,
+    ) -> _Answer: ...
+    def abandon(self, envs: list[int]) -> None: ...
+    def episode_steps(self) -> npt.NDArray[np.int64]: ...
+    def close(self) -> None: ...
+    def reopen(self) -> None: ...
+
+class Engine:
+    def __init__(self, data_dir: str | Path | None = None) -> None: ...
+    def call(self, method: str, request: bytes) -> bytes: ...
+    def open(self, task_id: str, num_envs: int, client_id: str) -> NativeStream: ...
+    def flush(self) -> None: ...
+    @property
+    def description(self) -> str: ...
+
+class Channel:
+    def __init__(self, target: str, metadata: list[tuple[str, str]] = ...) -> None: ...
+    def call(self, method: str, request: bytes, timeout: float | None = None) -> bytes: ...
+    def wait_ready(self, timeout: float) -> None: ...
+    def open(self, task_id: str, num_envs: int, client_id: str) -> NativeStream: ...
