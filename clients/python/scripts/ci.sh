@@ -4,7 +4,8 @@
 #   bash clients/python/scripts/ci.sh
 #
 # - creates (or reuses) the virtualenv $TAMRM_VENV (default: <repo>/.venv),
-# - installs the client with its [dev,sb3] extras (editable),
+# - installs the client with its [dev,sb3] extras (editable; maturin compiles the native
+#   extension, clients/python/native, from source with the Rust toolchain),
 # - runs ruff check, ruff format --check, mypy (src/tamrm, strict, generated stubs excluded),
 # - runs pytest on clients/python/tests against the real server binary
 #   $TAMRM_BIN (default: <repo>/target/release/tamrm).

@@ -6,6 +6,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from conftest import REPO_ROOT
@@ -22,36 +23,56 @@ def python_snippets() -> list[str]:
 
 def test_readme_has_the_snippets() -> None:
     snippets = python_snippets()
-    assert len(snippets) == 2
-    assert "tamrm.gym.ShapedReward" in snippets[0]
-    assert "tamrm.sb3.ShapedVecEnv" in snippets[1]
+    assert len(snippets) == 3
+    assert "tamrm.gym.ShapedReward" in snippets[0] and "tamrm.Engine(" in snippets[0]
+    assert "tamrm.sb3.ShapedVecEnv" in snippets[1] and "tamrm.Engine(" in snippets[1]
+    assert "tamrm.Client()" in snippets[2]
 
 
-@pytest.mark.parametrize("index", [0, 1], ids=["gymnasium", "sb3"])
-def test_readme_snippet_runs_alone(server_binary: str, index: int) -> None:
-    code = python_snippets()[index]
-    if index == 1:
-        pytest.importorskip("stable_baselines3")
-        # Shorter training, still long enough for SB3 to print its table once.
-        assert "model.learn(50_000)" in code
-        code = code.replace("model.learn(50_000)", "model.learn(4_000)")
+def _run(
+    code: str, cwd: Path, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=cwd,
+        env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})},
+        check=False,
+    )
+
+
+def test_readme_gymnasium_snippet_runs_alone_without_a_server(tmp_path: Path) -> None:
+    # Pasted into a fresh directory: no server, pools in ./tamrm-data.
+    proc = _run(python_snippets()[0], tmp_path, {"TAMRM_ADDRESS": "127.0.0.1:9"})
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    with tamrm.Engine(tmp_path / "tamrm-data") as engine:
+        stats = engine.get_task("cartpole").stats
+        assert stats.steps_shaped == 500
+        assert stats.episodes_completed > 0 and stats.pool_size > 0
+
+
+def test_readme_sb3_snippet_runs_alone_without_a_server(tmp_path: Path) -> None:
+    pytest.importorskip("stable_baselines3")
+    code = python_snippets()[1]
+    # Shorter training, still long enough for SB3 to print its table once.
+    assert "model.learn(50_000," in code
+    code = code.replace("model.learn(50_000,", "model.learn(4_000,")
+    proc = _run(code, tmp_path, {"TAMRM_ADDRESS": "127.0.0.1:9"})
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert "ep_rew_mean" in proc.stdout  # the run shows its progress
+    assert "knn_active_frac" in proc.stdout  # and the shaped parts (SB3 groups by "tamrm/")
+
+
+def test_readme_server_snippet_runs_alone(server_binary: str, tmp_path: Path) -> None:
     with tamrm.local_server(binary=server_binary, in_memory=True) as srv:
-        proc = subprocess.run(
-            [sys.executable, "-c", code],
-            capture_output=True,
-            text=True,
-            timeout=300,
-            cwd=REPO_ROOT,
-            env={**os.environ, "TAMRM_ADDRESS": srv.address, "OMP_NUM_THREADS": "1"},
-            check=False,
-        )
+        proc = _run(python_snippets()[2], tmp_path, {"TAMRM_ADDRESS": srv.address})
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
         with tamrm.Client(srv.address) as client:
             stats = client.get_task("cartpole").stats
-            assert stats.steps_shaped > 0
+            assert (stats.steps_shaped, stats.episodes_completed) == (2, 1)
             assert stats.open_streams == 0  # the snippet closed its session
-    if index == 1:
-        assert "ep_rew_mean" in proc.stdout  # the run shows its progress
 
 
 def test_gitignore_has_the_data_dir() -> None:

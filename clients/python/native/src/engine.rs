@@ -203,6 +203,14 @@ impl Engine {
     }
 }
 
+impl Drop for Engine {
+    /// The task counters since the last commit are persisted when the engine goes (its
+    /// pools are durable at every change already).
+    fn drop(&mut self) {
+        self.rt.block_on(self.registry.flush_counters());
+    }
+}
+
 impl EngineStream {
     /// Shapes one batch in-process.
     pub fn step(&mut self, batch: &Prepared) -> Result<Answer, Status> {
