@@ -1,8 +1,6 @@
 //! The kNN reward r(t) of SPEC §3, given the distances of the current prefix to every
 //! stored trajectory.
 
-use std::cmp::Ordering;
-
 /// r(t) = exp(f(t)) − exp(0.5).
 pub fn reward_from_f(f: f64) -> f64 {
     f.exp() - 0.5f64.exp()
@@ -12,15 +10,65 @@ pub fn reward_from_f(f: f64) -> f64 {
 #[derive(Debug, Default, Clone)]
 pub struct KnnScratch {
     p: Vec<f64>,
+    /// Per entry: P in the high half, the entry's (x, seq) rank in the low half, so that
+    /// the order of the keys is the order that picks K.
+    keys: Vec<u128>,
+    /// A copy of `keys` for the selection.
+    sel: Vec<u128>,
+    /// Per entry: 1 if it is in K, else 0.
+    pick: Vec<i32>,
+    /// The `xs` and `seqs` (as bits) that `rank` was computed for.
+    rank_xs: Vec<u64>,
+    rank_seqs: Vec<u64>,
+    /// Per entry: `u64::MAX` minus its place in the order (x descending, seq ascending).
+    rank: Vec<u64>,
     idx: Vec<usize>,
+    /// Per trajectory: whether its action at the current step differs (0 or 1), for the
+    /// distance update of discrete episodes.
+    pub(crate) mismatch: Vec<i32>,
 }
 
-/// f(t) = Σ_{i∈K} x_i·P_i for distances `dis`, normalised scores `xs` and seqs `seqs`
-/// (all aligned, non-empty), with K the first `k` entries ordered by P descending, then x
+/// An integer with the order of [`f64::total_cmp`].
+#[inline]
+fn total_order_key(x: f64) -> u64 {
+    let bits = x.to_bits() as i64;
+    let flipped = bits ^ ((((bits >> 63) as u64) >> 1) as i64);
+    (flipped as u64) ^ (1 << 63)
+}
+
+impl KnnScratch {
+    /// Ranks the entries by x descending, then seq ascending: the order that breaks ties
+    /// in P. It depends on the pool only, so it is kept until `xs` or `seqs` change.
+    fn rank_for(&mut self, xs: &[f64], seqs: &[u64]) {
+        let same = self.rank.len() == xs.len()
+            && self.rank_seqs.as_slice() == seqs
+            && self.rank_xs.iter().zip(xs).all(|(&a, &b)| a == b.to_bits());
+        if same {
+            return;
+        }
+        let idx = &mut self.idx;
+        idx.clear();
+        idx.extend(0..xs.len());
+        idx.sort_unstable_by(|&a, &b| xs[b].total_cmp(&xs[a]).then_with(|| seqs[a].cmp(&seqs[b])));
+        self.rank.clear();
+        self.rank.resize(xs.len(), 0);
+        for (place, &i) in idx.iter().enumerate() {
+            self.rank[i] = u64::MAX - place as u64;
+        }
+        self.rank_xs.clear();
+        self.rank_xs.extend(xs.iter().map(|x| x.to_bits()));
+        self.rank_seqs.clear();
+        self.rank_seqs.extend_from_slice(seqs);
+    }
+}
+
+/// f(t) = Σ_{i∈K} x_i·P_i for distances `dis`, normalised scores `xs` (in [0, 1]) and
+/// seqs `seqs` (all aligned, non-empty), with K the first `k` entries ordered by P descending, then x
 /// descending, then seq ascending. P is not renormalised over K.
 ///
 /// The sum runs over K in ascending seq (= pool) order, so the result is reproducible bit
-/// for bit. Cost: O(|D|) plus selecting the top k and sorting them (O(k log k)).
+/// for bit. Cost: O(|D|) plus selecting the top k (one selection on integer keys; the
+/// (x, seq) order that breaks ties in P is computed once per pool).
 pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnScratch) -> f64 {
     let n = dis.len();
     debug_assert!(n > 0 && xs.len() == n && seqs.len() == n);
@@ -32,29 +80,108 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
         let share = 1.0 / exact as f64;
         p.extend(dis.iter().map(|&d| if d == 0.0 { share } else { 0.0 }));
     } else {
-        let total: f64 = dis.iter().map(|&d| 1.0 / d).sum();
-        p.extend(dis.iter().map(|&d| (1.0 / d) / total));
+        p.extend(dis.iter().map(|&d| 1.0 / d));
+        let total: f64 = p.iter().sum();
+        p.iter_mut().for_each(|q| *q /= total);
     }
     if k >= n {
         return p.iter().zip(xs).map(|(&pi, &xi)| xi * pi).sum();
     }
-    let idx = &mut scratch.idx;
-    idx.clear();
-    idx.extend(0..n);
-    let order = |&a: &usize, &b: &usize| -> Ordering {
-        p[b].total_cmp(&p[a])
-            .then_with(|| xs[b].total_cmp(&xs[a]))
-            .then_with(|| seqs[a].cmp(&seqs[b]))
-    };
-    idx.select_nth_unstable_by(k - 1, order);
-    let top = &mut idx[..k];
-    top.sort_unstable();
-    top.iter().map(|&i| xs[i] * p[i]).sum()
+    // K is the k largest keys (all distinct): those at or above the k-th largest.
+    scratch.rank_for(xs, seqs);
+    let keys = &mut scratch.keys;
+    keys.clear();
+    keys.extend(
+        scratch
+            .p
+            .iter()
+            .zip(&scratch.rank)
+            .map(|(&pi, &r)| (u128::from(total_order_key(pi)) << 64) | u128::from(r)),
+    );
+    let sel = &mut scratch.sel;
+    sel.clear();
+    sel.extend_from_slice(keys);
+    let (_, &mut threshold, _) = sel.select_nth_unstable(n - k);
+    scratch.pick.clear();
+    scratch
+        .pick
+        .extend(keys.iter().map(|&key| i32::from(key >= threshold)));
+    // Σ over K in pool order. Entries outside K add (x·P)·0 = +0.0, which changes no
+    // partial sum: every term is ≥ +0.0 (x and P are), so the sum never is −0.0 after
+    // its first term. No branch depends on membership.
+    let p = &scratch.p;
+    p.iter()
+        .zip(xs)
+        .zip(scratch.pick.iter())
+        .map(|((&pi, &xi), &m)| (xi * pi) * f64::from(m))
+        .sum()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The definition, literally: order every entry, take the first k, sum in pool order.
+    fn knn_f_by_sort(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize) -> f64 {
+        let n = dis.len();
+        let exact = dis.iter().filter(|&&d| d == 0.0).count();
+        let p: Vec<f64> = if exact > 0 {
+            let share = 1.0 / exact as f64;
+            dis.iter()
+                .map(|&d| if d == 0.0 { share } else { 0.0 })
+                .collect()
+        } else {
+            let total: f64 = dis.iter().map(|&d| 1.0 / d).sum();
+            dis.iter().map(|&d| (1.0 / d) / total).collect()
+        };
+        let mut idx: Vec<usize> = (0..n).collect();
+        idx.sort_by(|&a, &b| {
+            p[b].total_cmp(&p[a])
+                .then_with(|| xs[b].total_cmp(&xs[a]))
+                .then_with(|| seqs[a].cmp(&seqs[b]))
+        });
+        let mut top = idx[..k.min(n)].to_vec();
+        top.sort_unstable();
+        top.iter().map(|&i| xs[i] * p[i]).sum()
+    }
+
+    #[test]
+    fn selection_matches_the_definition_bit_for_bit() {
+        // Small integer distances and few distinct scores: many ties in P and in x, and
+        // one scratch across pools of different sizes and contents.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = |m: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state % m
+        };
+        let mut scratch = KnnScratch::default();
+        for round in 0..3000 {
+            let n = 1 + next(40) as usize;
+            let dis: Vec<f64> = (0..n)
+                .map(|_| match round % 3 {
+                    0 => 2.0 * next(4) as f64,
+                    1 => 2.0 * next(50) as f64,
+                    _ => next(1000) as f64 / 7.0,
+                })
+                .collect();
+            let xs: Vec<f64> = (0..n).map(|_| next(4) as f64 / 3.0).collect();
+            let mut seqs: Vec<u64> = (0..n).map(|_| next(1000)).collect();
+            seqs.sort_unstable();
+            seqs.dedup();
+            let n = seqs.len();
+            for k in [1, n / 2 + 1, n.saturating_sub(1).max(1), n] {
+                let got = knn_f(&dis[..n], &xs[..n], &seqs, k, &mut scratch);
+                let want = knn_f_by_sort(&dis[..n], &xs[..n], &seqs, k);
+                assert_eq!(
+                    got.to_bits(),
+                    want.to_bits(),
+                    "n {n} k {k} dis {dis:?} xs {xs:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn equidistant_from_best_and_worst_gives_zero() {
