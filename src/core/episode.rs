@@ -69,6 +69,25 @@ pub struct Episode {
     seqs: Vec<u64>,
     /// dis_i over the steps taken so far (j < min(t, L_i)).
     dis: Vec<f64>,
+    /// The previous `dis` allocation, reused by the next sync.
+    spare: Vec<f64>,
+}
+
+/// Σ_{j<upto} δ(a_j, b_j) of two action sequences, summed in j order (the definition).
+/// For discrete actions each term is 0 or 2, so the sum is exactly 2 × the number of
+/// mismatches (an empty sum stays the empty sum).
+fn prefix_distance(a: &ActionSeq, b: &ActionSeq, upto: usize) -> f64 {
+    match (a, b) {
+        (ActionSeq::Discrete(x), ActionSeq::Discrete(y)) if upto > 0 => {
+            let mismatches = x[..upto]
+                .iter()
+                .zip(&y[..upto])
+                .filter(|(p, q)| p != q)
+                .count();
+            2.0 * mismatches as f64
+        }
+        _ => (0..upto).map(|j| delta(a.get(j), b.get(j))).sum(),
+    }
 }
 
 impl Episode {
@@ -81,6 +100,7 @@ impl Episode {
             synced_version: None,
             seqs: Vec::new(),
             dis: Vec::new(),
+            spare: Vec::new(),
         }
     }
 
@@ -98,6 +118,7 @@ impl Episode {
             synced_version: None,
             seqs: Vec::new(),
             dis: Vec::new(),
+            spare: Vec::new(),
         }
     }
 
@@ -111,7 +132,9 @@ impl Episode {
         if self.synced_version == Some(pool.version()) {
             return;
         }
-        let mut dis = Vec::with_capacity(pool.len());
+        let mut dis = std::mem::take(&mut self.spare);
+        dis.clear();
+        dis.reserve(pool.len());
         let mut old = 0;
         for (traj, &seq) in pool.trajectories().iter().zip(pool.seqs()) {
             // Both lists are sorted by seq and seqs are never reused: a merge walk.
@@ -124,17 +147,54 @@ impl Episode {
                 let upto = (self.t as usize)
                     .min(traj.actions.len())
                     .min(self.recorded.len());
-                dis.push(
-                    (0..upto)
-                        .map(|j| delta(traj.actions.get(j), self.recorded.get(j)))
-                        .sum(),
-                );
+                dis.push(prefix_distance(&traj.actions, &self.recorded, upto));
             }
         }
         self.seqs.clear();
         self.seqs.extend_from_slice(pool.seqs());
-        self.dis = dis;
+        self.spare = std::mem::replace(&mut self.dis, dis);
         self.synced_version = Some(pool.version());
+    }
+
+    /// The distance update of step `t` for a discrete action against a discrete pool;
+    /// `false` (nothing done) otherwise. Two passes: the first only loads each
+    /// trajectory's action at t and records a mismatch as 0 or 1 (no branch on the
+    /// comparison, so the loads, which mostly miss the cache, overlap); the second adds
+    /// δ = 2 × mismatch, exactly what [`delta`] gives. A trajectory shorter than t gets
+    /// + 0.0, which leaves its distance (≥ +0.0) unchanged.
+    fn discrete_distances(
+        &mut self,
+        pool: &Pool,
+        t: usize,
+        action: ActionRef<'_>,
+        scratch: &mut KnnScratch,
+    ) -> bool {
+        let ActionRef::Discrete(a) = action else {
+            return false;
+        };
+        let mismatch = &mut scratch.mismatch;
+        mismatch.clear();
+        let mut all_discrete = true;
+        mismatch.extend(
+            pool.trajectories()
+                .iter()
+                .zip(pool.lens())
+                .map(|(traj, &len)| match &traj.actions {
+                    ActionSeq::Discrete(v) if t < len => i32::from(v[t] != a),
+                    ActionSeq::Discrete(_) => 0,
+                    ActionSeq::Continuous { .. } => {
+                        all_discrete = false;
+                        0
+                    }
+                }),
+        );
+        if !all_discrete {
+            return false;
+        }
+        for (d, &m) in self.dis.iter_mut().zip(mismatch.iter()) {
+            *d += 2.0 * f64::from(m);
+        }
+        true
     }
 
     /// Shapes one step against `pool` as it is now, and returns the finished episode if
@@ -148,14 +208,16 @@ impl Episode {
     ) -> (StepOutput, Option<EpisodeEnd>) {
         self.sync(pool);
         let t = self.t as usize;
-        for ((d, traj), &len) in self
-            .dis
-            .iter_mut()
-            .zip(pool.trajectories())
-            .zip(pool.lens())
-        {
-            if t < len {
-                *d += delta(traj.actions.get(t), input.action);
+        if !self.discrete_distances(pool, t, input.action, scratch) {
+            for ((d, traj), &len) in self
+                .dis
+                .iter_mut()
+                .zip(pool.trajectories())
+                .zip(pool.lens())
+            {
+                if t < len {
+                    *d += delta(traj.actions.get(t), input.action);
+                }
             }
         }
         if t < cfg.max_trajectory_len as usize {
