@@ -260,24 +260,25 @@ impl<'a> Batch<'a> {
         let mut seen = vec![false; if self.episode_scores.is_empty() { 0 } else { b }];
         for &(i, score) in self.episode_scores {
             let i = i as usize;
-            let field = format!("steps.episode_scores[{i}]");
+            // Only an error names the field: no string per valid score.
+            let field = || format!("steps.episode_scores[{i}]");
             let Some(slot) = seen.get_mut(i) else {
                 return Err(invalid(
-                    field,
+                    field(),
                     format!("entry index out of range: the batch has {b} entries"),
                 ));
             };
             if std::mem::replace(slot, true) {
-                return Err(invalid(field, "entry has more than one score"));
+                return Err(invalid(field(), "entry has more than one score"));
             }
             if !self.ends(i) {
                 return Err(invalid(
-                    field,
+                    field(),
                     "a score is only allowed on an entry that ends an episode (terminated or truncated)",
                 ));
             }
             if !score.is_finite() {
-                return Err(invalid(field, format!("must be finite, got {score}")));
+                return Err(invalid(field(), format!("must be finite, got {score}")));
             }
         }
         Ok(())
