@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 
-import numpy as np
 import pytest
 
 import tamrm
@@ -34,17 +33,6 @@ def test_get_pool_op_asks_for_the_action_dim() -> None:
     assert calls == ["GetPool", "GetTask"]
     assert pool.pool_version == 7
     assert pool.trajectories[0].actions.tolist() == [[0.0, 1.0], [2.0, 3.0]]
-
-
-def test_sync_and_async_drivers_agree() -> None:
-    async def call(rpc: ops.Rpc) -> object:
-        await asyncio.sleep(0)
-        return _answer(rpc)
-
-    sync = ops.run(ops.get_pool("x"), _answer)
-    async_ = asyncio.run(ops.run_async(ops.get_pool("x"), call))
-    assert sync.pool_version == async_.pool_version
-    np.testing.assert_array_equal(sync.trajectories[0].actions, async_.trajectories[0].actions)
 
 
 def test_create_task_op_builds_the_request() -> None:

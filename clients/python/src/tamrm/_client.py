@@ -7,7 +7,6 @@ import re
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
-import grpc
 import numpy.typing as npt
 from google.protobuf import message_factory
 from google.protobuf.message import Message
@@ -17,7 +16,6 @@ from tamrm import _ops as ops
 from tamrm._closing import Closing
 from tamrm._errors import from_native
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
-from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, Task, TaskOptions
 
@@ -29,9 +27,7 @@ __all__ = [
     "DEFAULT_ADDRESS",
     "DEFAULT_TIMEOUT",
     "Client",
-    "ClientCore",
     "TaskCalls",
-    "make_channel_options",
     "parse_target",
 ]
 
@@ -95,75 +91,10 @@ def parse_target(target: str | None) -> str:
 _T = TypeVar("_T")
 
 
-def make_channel_options(
-    options: Sequence[tuple[str, Any]] | None,
-) -> list[tuple[str, Any]]:
-    """Return the clients' channel options: large messages allowed, plus ``options``."""
-    base: dict[str, Any] = {
-        "grpc.max_send_message_length": 64 * 1024 * 1024,
-        "grpc.max_receive_message_length": 256 * 1024 * 1024,
-    }
-    for key, value in options or ():
-        base[key] = value
-    return list(base.items())
-
-
-class ClientCore:
-    """What the sync and asyncio clients share: the channel's settings, stub and metadata."""
-
-    def __init__(
-        self,
-        target: str | None = None,
-        *,
-        timeout: float | None = DEFAULT_TIMEOUT,
-        credentials: grpc.ChannelCredentials | None = None,
-        options: Sequence[tuple[str, Any]] | None = None,
-        metadata: Sequence[tuple[str, str]] | None = None,
-    ) -> None:
-        self.target = parse_target(target)
-        self.timeout = timeout
-        self._credentials = credentials
-        self._options = tuple(options) if options else None
-        self._channel = self._make_channel(self.target, credentials, make_channel_options(options))
-        self._stub = pb_grpc.ShapingStub(self._channel)
-        self._metadata = tuple(metadata) if metadata else None
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
-        # AsyncVectorEnv worker) opens its own channel.
-        if self._credentials is not None:
-            raise TypeError(
-                f"a {type(self).__name__} with credentials cannot be pickled (gRPC credentials "
-                "cannot be); create the client in the child process instead"
-            )
-        return (
-            _rebuild_client,
-            (type(self), self.target, self.timeout, self._options, self._metadata),
-        )
-
-    def __deepcopy__(self, memo: dict[int, object]) -> ClientCore:
-        # A handle on a connection, like the sessions: deep copies are the same client.
-        return self
-
-    def _make_channel(
-        self,
-        target: str,
-        credentials: grpc.ChannelCredentials | None,
-        options: list[tuple[str, Any]],
-    ) -> Any:
-        raise NotImplementedError
-
-
 def _rebuild_client(
-    cls: type[Any],
-    target: str,
-    timeout: float | None,
-    options: Sequence[tuple[str, Any]] | None,
-    metadata: Sequence[tuple[str, str]] | None,
-) -> Any:
-    if options is None:
-        return cls(target, timeout=timeout, metadata=metadata)
-    return cls(target, timeout=timeout, options=options, metadata=metadata)
+    target: str, timeout: float | None, metadata: Sequence[tuple[str, str]] | None
+) -> Client:
+    return Client(target, timeout=timeout, metadata=metadata)
 
 
 def _response_types() -> dict[str, type[Message]]:
@@ -347,7 +278,7 @@ class Client(TaskCalls, Closing):
     def __reduce__(self) -> tuple[Any, ...]:
         # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
         # AsyncVectorEnv worker) opens its own connection.
-        return (_rebuild_client, (type(self), self.target, self.timeout, None, self._metadata))
+        return (_rebuild_client, (self.target, self.timeout, self._metadata))
 
     def __deepcopy__(self, memo: dict[int, object]) -> Client:
         # A handle on a connection, like the sessions: deep copies are the same client.

@@ -2,13 +2,13 @@
 
 Each operation is a generator that yields the :class:`Rpc` calls it needs and receives
 their answers (``answer = yield Rpc(...)``); its return value is the client's result. The
-synchronous :class:`tamrm.Client` and the asyncio :class:`tamrm.aio.Client` only run the
-calls (:func:`run` and :func:`run_async`); everything else about a call is here.
+clients (:class:`tamrm.Client`, :class:`tamrm.Engine`) only run the calls (:func:`run`
+with their transport); everything else about a call is here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable, Generator, Mapping
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
@@ -30,7 +30,6 @@ __all__ = [
     "list_tasks",
     "reset_pool",
     "run",
-    "run_async",
 ]
 
 _T = TypeVar("_T")
@@ -66,14 +65,6 @@ def run(op: Op[_T], call: Callable[[Rpc], Any]) -> _T:
     step = _advance(op, None)
     while isinstance(step, Rpc):
         step = _advance(op, call(step))
-    return step.value
-
-
-async def run_async(op: Op[_T], call: Callable[[Rpc], Awaitable[Any]]) -> _T:
-    """Run ``op`` to its result, answering each of its calls with ``await call(rpc)``."""
-    step = _advance(op, None)
-    while isinstance(step, Rpc):
-        step = _advance(op, await call(step))
     return step.value
 
 

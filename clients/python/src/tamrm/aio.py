@@ -10,31 +10,32 @@ but every call is a coroutine::
         async with client.session("cartpole", num_envs=8) as session:
             shaped = await session.step(actions, rewards, terminated, truncated)
 
-Requests and answers are built and decoded by the same code as the synchronous client's
-(``tamrm._ops`` for the unary calls, :class:`tamrm._stream.SessionCore` for the stream);
-this module only awaits them.
+Each coroutine awaits the synchronous client's native call (``tamrm._native``, which
+releases the GIL for its round trip) on a worker thread, so the event loop goes on while
+the answer travels: requests, answers, checks and errors are exactly the synchronous
+client's.
 """
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Awaitable, Generator
+import asyncio
+import functools
+from collections.abc import Callable, Generator, Mapping
 from typing import TYPE_CHECKING, Any, TypeVar
 
-import grpc
-import grpc.aio
+import numpy as np
 import numpy.typing as npt
 
-from tamrm import _ops as ops
-from tamrm._batch import StepInput
-from tamrm._client import ClientCore
+from tamrm._client import DEFAULT_TIMEOUT
+from tamrm._client import Client as _SyncClient
 from tamrm._closing import AsyncClosing
-from tamrm._errors import TamrmError, from_rpc_error, from_status
-from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
-from tamrm._stream import SessionCore
-from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskOptions
+from tamrm._errors import SessionClosed
+from tamrm._session import Session
+from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskConfig, TaskOptions
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from typing_extensions import Unpack
 
 __all__ = ["AsyncSession", "Client"]
@@ -42,8 +43,14 @@ __all__ = ["AsyncSession", "Client"]
 _T = TypeVar("_T")
 
 
-class AsyncSession(SessionCore[Awaitable[StepResult]], AsyncClosing):
-    """One ``Shape`` stream, asyncio flavour; see :class:`tamrm.Session`.
+async def _in_thread(fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> _T:
+    """Await ``fn(*args, **kwargs)`` run on the loop's default executor."""
+    loop = asyncio.get_running_loop()
+    return await loop.run_in_executor(None, functools.partial(fn, *args, **kwargs))
+
+
+class AsyncSession(AsyncClosing):
+    """One shaping stream, asyncio flavour; see :class:`tamrm.Session`.
 
     Returned (not yet open) by :meth:`Client.session`: open it with ``async with`` (or
     ``await session.open()`` / ``await client.session(...)``), then ``await`` each
@@ -51,104 +58,113 @@ class AsyncSession(SessionCore[Awaitable[StepResult]], AsyncClosing):
     before sending the next.
     """
 
-    def _start(self) -> None:
-        # The stream opens on ``open()`` / ``async with``.
-        self._call: Any = None
+    def __init__(self, client: Client, task_id: str, num_envs: int) -> None:
+        if not isinstance(task_id, str):
+            raise TypeError(f"task_id must be a str, got {type(task_id).__name__}")
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
+            raise TypeError(f"num_envs must be an int, got {type(num_envs).__name__}")
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.task_id = task_id
+        self.num_envs = int(num_envs)
+        self._client = client
+        self._session: Session | None = None
 
     async def open(self) -> AsyncSession:
-        """Open the stream and wait for the server's answer to ``Open``.
+        """Open the stream and wait for the answer to ``Open``.
 
         Raises:
             TaskNotFound: No such task.
             InvalidArgument: ``num_envs`` was rejected.
         """
-        if not self._closed:
-            return self
-        self._call = self._stub.Shape(metadata=self._metadata)
-        await self._write(self._open_request())
-        self._opened(await self._read())
+        if self._session is None or self._session.closed:
+            self._session = await _in_thread(
+                Session, self._client._sync, self.task_id, self.num_envs
+            )
         return self
 
-    async def _write(self, request: pb.ShapeRequest) -> None:
-        try:
-            await self._call.write(request)
-        except grpc.RpcError as exc:
-            err = from_rpc_error(exc)
-            self._abort(err)
-            raise err from None
-        except Exception:
-            # A write after the call ended (e.g. the server already failed it): the
-            # status says why.
-            err = await self._status_error()
-            self._abort(err)
-            raise err from None
+    def _open_session(self) -> Session:
+        if self._session is None:
+            raise SessionClosed(f"the session on task {self.task_id!r} is not open")
+        return self._session
 
-    async def _status_error(self) -> TamrmError:
-        try:
-            code = await self._call.code()
-            details = await self._call.details()
-        except Exception:  # pragma: no cover - defensive
-            return TamrmError("the Shape stream failed")
-        return from_status(code, details)
+    @property
+    def task(self) -> Task:
+        """The task as it was when the stream opened."""
+        return self._open_session().task
 
-    async def _read(self) -> pb.ShapeResponse:
-        try:
-            resp = await self._call.read()
-        except grpc.RpcError as exc:
-            err = from_rpc_error(exc)
-            self._abort(err)
-            raise err from None
-        if resp is grpc.aio.EOF:
-            code = await self._call.code()
-            if code == grpc.StatusCode.OK:
-                err = TamrmError("the server ended the Shape stream unexpectedly")
-            else:
-                err = await self._status_error()
-            self._abort(err)
-            raise err
-        msg: pb.ShapeResponse = resp
-        return msg
+    @property
+    def config(self) -> TaskConfig:
+        """The task's resolved configuration, as returned when the stream opened."""
+        return self._open_session().config
 
-    def _abort(self, err: BaseException) -> None:
-        self._failed(err)
-        if self._call is not None:
-            self._call.cancel()
+    @property
+    def closed(self) -> bool:
+        """Whether the stream is closed (or not opened yet)."""
+        return self._session is None or self._session.closed
 
-    async def _exchange(self, step: StepInput) -> StepResult:
-        prepared = self._prepare(step)
-        if isinstance(prepared, StepResult):
-            return prepared
-        try:
-            await self._write(prepared.request)
-            resp = await self._read()
-        except TamrmError as err:
-            if self._rejected(err):
-                # The batch changed nothing: go on on a new stream with every episode resumed.
-                with contextlib.suppress(TamrmError):
-                    await self.open()
-            raise
-        try:
-            return self._shaped(resp, prepared)
-        except TamrmError as err:
-            self._abort(err)
-            raise
+    @property
+    def pool_version(self) -> int:
+        """The task's pool version after the last answered batch (or at open)."""
+        return self._open_session().pool_version
+
+    @property
+    def episode_steps(self) -> npt.NDArray[np.int64]:
+        """Per environment, the steps sent so far in its current (unfinished) episode."""
+        if self._session is None:
+            return np.zeros(self.num_envs, dtype=np.int64)
+        return self._session.episode_steps
+
+    @property
+    def episodes_in_progress(self) -> npt.NDArray[np.bool_]:
+        """Per environment, whether an episode has been started and not yet ended."""
+        return np.greater(self.episode_steps, 0)
+
+    async def step(
+        self,
+        actions: npt.ArrayLike,
+        rewards: npt.ArrayLike,
+        terminated: npt.ArrayLike | None = None,
+        truncated: npt.ArrayLike | None = None,
+        *,
+        values: npt.ArrayLike | None = None,
+        next_values: npt.ArrayLike | None = None,
+        q_values: npt.ArrayLike | None = None,
+        next_q_values: npt.ArrayLike | None = None,
+        episode_scores: npt.ArrayLike | Mapping[int, float] | None = None,
+        env_ids: npt.ArrayLike | None = None,
+    ) -> StepResult:
+        """Shape one vector step; arguments, result and errors as :meth:`tamrm.Session.step`."""
+        session = self._open_session()
+        return await _in_thread(
+            session.step,
+            actions,
+            rewards,
+            terminated,
+            truncated,
+            values=values,
+            next_values=next_values,
+            q_values=q_values,
+            next_q_values=next_q_values,
+            episode_scores=episode_scores,
+            env_ids=env_ids,
+        )
+
+    def abandon(self, env_ids: npt.ArrayLike) -> None:
+        """Drop the current episodes of ``env_ids``; see :meth:`tamrm.Session.abandon`.
+
+        A plain method: nothing is sent until the next step.
+        """
+        self._open_session().abandon(env_ids)
 
     async def restart(self) -> None:
-        """Close the stream and open a new one; episodes in progress are discarded."""
-        await self.close()
-        await self.open()
+        """Close the stream and open a new one on the task; see :meth:`tamrm.Session.restart`."""
+        await _in_thread(self._open_session().restart)
 
     async def close(self) -> None:
-        """Half-close the stream and wait for the server to end it. Idempotent."""
-        if not self._closing():
-            return
-        call = self._call
-        try:
-            await call.done_writing()
-            while await call.read() is not grpc.aio.EOF:
-                pass
-        except grpc.RpcError:
-            pass
+        """End the stream (idempotent); episodes still in progress are discarded."""
+        if self._session is not None:
+            await _in_thread(self._session.close)
 
     def __await__(self) -> Generator[Any, None, AsyncSession]:
         return self.open().__await__()
@@ -157,81 +173,81 @@ class AsyncSession(SessionCore[Awaitable[StepResult]], AsyncClosing):
         return await self.open()
 
     def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
+        state = "closed" if self.closed else "open"
         return f"<tamrm.aio.AsyncSession task_id={self.task_id!r} num_envs={self.num_envs} {state}>"
 
 
-class Client(ClientCore, AsyncClosing):
+class Client(AsyncClosing):
     """Asyncio client of a tamrm server; see :class:`tamrm.Client` for every method.
-
-    Create it inside a running event loop.
 
     Args:
         target: The server address, ``host:port`` (default: ``$TAMRM_ADDRESS``, else
             ``127.0.0.1:50051``); see :class:`tamrm.Client`.
         timeout: Deadline in seconds of each unary call (``None``: no deadline).
-        credentials: Channel credentials for TLS; ``None`` for plaintext.
-        options: Extra gRPC channel options.
         metadata: Metadata sent with every call.
     """
 
-    def _make_channel(
+    def __init__(
         self,
-        target: str,
-        credentials: grpc.ChannelCredentials | None,
-        options: list[tuple[str, Any]],
-    ) -> grpc.aio.Channel:
-        if credentials is None:
-            return grpc.aio.insecure_channel(target, options=options)
-        return grpc.aio.secure_channel(target, credentials, options=options)
-
-    async def _call(self, rpc: ops.Rpc) -> Any:
-        method = getattr(self._stub, rpc.method)
-        try:
-            return await method(rpc.request, timeout=self.timeout, metadata=self._metadata)
-        except grpc.RpcError as exc:
-            raise from_rpc_error(exc) from None
-
-    async def _run(self, op: ops.Op[_T]) -> _T:
-        return await ops.run_async(op, self._call)
+        target: str | None = None,
+        *,
+        timeout: float | None = DEFAULT_TIMEOUT,
+        metadata: Sequence[tuple[str, str]] | None = None,
+    ) -> None:
+        self._sync = _SyncClient(target, timeout=timeout, metadata=metadata)
+        self.target = self._sync.target
+        self.timeout = timeout
 
     async def create_task(self, task_id: str, **config: Unpack[TaskOptions]) -> Task:
         """Create a task; see :meth:`tamrm.Client.create_task`."""
-        return await self._run(ops.create_task(task_id, config))
+        return await _in_thread(self._sync.create_task, task_id, **config)
 
     async def get_task(self, task_id: str) -> Task:
         """Return a task; see :meth:`tamrm.Client.get_task`."""
-        return await self._run(ops.get_task(task_id))
+        return await _in_thread(self._sync.get_task, task_id)
 
     async def list_tasks(self) -> list[Task]:
         """Return every task, ordered by task id."""
-        return await self._run(ops.list_tasks())
+        return await _in_thread(self._sync.list_tasks)
 
     async def delete_task(self, task_id: str) -> None:
         """Delete a task and its pool; see :meth:`tamrm.Client.delete_task`."""
-        await self._run(ops.delete_task(task_id))
+        await _in_thread(self._sync.delete_task, task_id)
 
     async def reset_pool(self, task_id: str) -> Task:
         """Empty a task's memory pool; see :meth:`tamrm.Client.reset_pool`."""
-        return await self._run(ops.reset_pool(task_id))
+        return await _in_thread(self._sync.reset_pool, task_id)
 
     async def get_pool(self, task_id: str) -> Pool:
         """Return a task's memory pool; see :meth:`tamrm.Client.get_pool`."""
-        return await self._run(ops.get_pool(task_id))
+        return await _in_thread(self._sync.get_pool, task_id)
 
     async def add_trajectory(
         self, task_id: str, actions: npt.ArrayLike, score: float
     ) -> AddTrajectoryResult:
         """Offer a trajectory to a task's pool; see :meth:`tamrm.Client.add_trajectory`."""
-        return await self._run(ops.add_trajectory(task_id, actions, score))
+        return await _in_thread(self._sync.add_trajectory, task_id, actions, score)
 
     def session(self, task_id: str, num_envs: int = 1) -> AsyncSession:
         """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``."""
         return AsyncSession(self, task_id, num_envs)
 
+    async def wait_ready(self, timeout: float = 10.0) -> None:
+        """Wait until the server can be reached; see :meth:`tamrm.Client.wait_ready`."""
+        await _in_thread(self._sync.wait_ready, timeout)
+
     async def close(self) -> None:
-        """Close the channel (open sessions are cancelled)."""
-        await self._channel.close()
+        """Close the client."""
+        self._sync.close()
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild, (self.target, self.timeout, self._sync._metadata))
 
     def __repr__(self) -> str:
         return f"<tamrm.aio.Client target={self.target!r}>"
+
+
+def _rebuild(
+    target: str, timeout: float | None, metadata: Sequence[tuple[str, str]] | None
+) -> Client:
+    return Client(target, timeout=timeout, metadata=metadata)
