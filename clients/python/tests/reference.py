@@ -172,3 +172,24 @@ class RefStream:
             self.episodes[env] = []
             self.returns[env] = 0.0
         return out
+
+
+def assert_pools_identical(got: object, want: object) -> None:
+    """Two ``tamrm.Pool`` answers hold the same trajectories, bit for bit (seq, score, actions)."""
+    assert got.task_id == want.task_id  # type: ignore[attr-defined]
+    assert got.pool_version == want.pool_version  # type: ignore[attr-defined]
+    a, b = got.trajectories, want.trajectories  # type: ignore[attr-defined]
+    assert [(t.seq, t.score) for t in a] == [(t.seq, t.score) for t in b]
+    for x, y in zip(a, b, strict=True):
+        assert x.actions.dtype == y.actions.dtype and x.actions.shape == y.actions.shape
+        assert np.array_equal(x.actions, y.actions), (x.seq, x.actions, y.actions)
+
+
+def assert_tasks_identical(got: object, want: object) -> None:
+    """Two ``tamrm.Task`` answers agree: id, resolved config, stats (but ``open_streams``)."""
+    assert got.task_id == want.task_id  # type: ignore[attr-defined]
+    assert got.config == want.config  # type: ignore[attr-defined]
+    skip = {"open_streams"}
+    stats_a = {k: v for k, v in vars(got.stats).items() if k not in skip}  # type: ignore[attr-defined]
+    stats_b = {k: v for k, v in vars(want.stats).items() if k not in skip}  # type: ignore[attr-defined]
+    assert stats_a == stats_b
