@@ -9,8 +9,8 @@
 
 use super::actions::{delta, ActionRef, ActionSeq};
 use super::config::{ActionSpace, TaskConfig};
-use super::knn::{knn_f, reward_from_f, KnnScratch};
-use super::pool::Pool;
+use super::knn::{knn_f, knn_f_discrete, reward_from_f, KnnScratch};
+use super::pool::{Pool, NO_ACTION};
 use super::potential::{potential, Values};
 
 /// One environment step as the core needs it (already validated).
@@ -71,6 +71,9 @@ pub struct Episode {
     dis: Vec<f64>,
     /// The previous `dis` allocation, reused by the next sync.
     spare: Vec<f64>,
+    /// The trajectories (indices into `dis`) in the kNN order of the previous step, which
+    /// the next step repairs rather than selecting anew (see [`knn_f_discrete`]).
+    order: Vec<u32>,
 }
 
 /// Σ_{j<upto} δ(a_j, b_j) of two action sequences, summed in j order (the definition).
@@ -101,6 +104,7 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
+            order: Vec::new(),
         }
     }
 
@@ -119,6 +123,7 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
+            order: Vec::new(),
         }
     }
 
@@ -157,11 +162,12 @@ impl Episode {
     }
 
     /// The distance update of step `t` for a discrete action against a discrete pool;
-    /// `false` (nothing done) otherwise. Two passes: the first only loads each
-    /// trajectory's action at t and records a mismatch as 0 or 1 (no branch on the
-    /// comparison, so the loads, which mostly miss the cache, overlap); the second adds
-    /// δ = 2 × mismatch, exactly what [`delta`] gives. A trajectory shorter than t gets
-    /// + 0.0, which leaves its distance (≥ +0.0) unchanged.
+    /// `false` (nothing done) otherwise. With the pool laid out by step, one contiguous
+    /// row holds every trajectory's action at t; each distance gets δ = 2 × mismatch
+    /// (0 or 1, no branch on the comparison), exactly what [`delta`] gives. A trajectory
+    /// shorter than t ([`NO_ACTION`]) gets + 0.0, which leaves its distance (≥ +0.0)
+    /// unchanged. Without the layout, a first pass loads each trajectory's action into a
+    /// mismatch column (so the cache-missing loads overlap) and a second adds.
     fn discrete_distances(
         &mut self,
         pool: &Pool,
@@ -172,6 +178,15 @@ impl Episode {
         let ActionRef::Discrete(a) = action else {
             return false;
         };
+        if pool.by_step() {
+            if let Some(row) = pool.step_row(t) {
+                for (d, &v) in self.dis.iter_mut().zip(row) {
+                    let m = (v != a) & (v != NO_ACTION);
+                    *d += 2.0 * f64::from(u8::from(m));
+                }
+            }
+            return true;
+        }
         let mismatch = &mut scratch.mismatch;
         mismatch.clear();
         let mut all_discrete = true;
@@ -208,7 +223,8 @@ impl Episode {
     ) -> (StepOutput, Option<EpisodeEnd>) {
         self.sync(pool);
         let t = self.t as usize;
-        if !self.discrete_distances(pool, t, input.action, scratch) {
+        let discrete = self.discrete_distances(pool, t, input.action, scratch);
+        if !discrete {
             for ((d, traj), &len) in self
                 .dis
                 .iter_mut()
@@ -230,13 +246,20 @@ impl Episode {
             && t < pool.l_min()
             && t < cfg.max_trajectory_len as usize;
         let knn_reward = if active {
-            reward_from_f(knn_f(
-                &self.dis,
-                pool.xs(),
-                pool.seqs(),
-                cfg.k as usize,
-                scratch,
-            ))
+            let k = cfg.k as usize;
+            let f = if discrete {
+                knn_f_discrete(
+                    &self.dis,
+                    pool.xs(),
+                    pool.places(),
+                    k,
+                    &mut self.order,
+                    scratch,
+                )
+            } else {
+                None
+            };
+            reward_from_f(f.unwrap_or_else(|| knn_f(&self.dis, pool.xs(), pool.seqs(), k, scratch)))
         } else {
             0.0
         };

@@ -23,6 +23,11 @@ pub struct KnnScratch {
     /// Per entry: `u64::MAX` minus its place in the order (x descending, seq ascending).
     rank: Vec<u64>,
     idx: Vec<usize>,
+    /// [`knn_f_discrete`]: per entry, (d / 2) in the high half and its place in the
+    /// (x, seq) order in the low half.
+    dkeys: Vec<u64>,
+    /// [`knn_f_discrete`]: `inv[m]` = 1 / (2m), as `1.0 / d` computes it.
+    inv: Vec<f64>,
     /// Per trajectory: whether its action at the current step differs (0 or 1), for the
     /// distance update of discrete episodes.
     pub(crate) mismatch: Vec<i32>,
@@ -117,6 +122,97 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
         .sum()
 }
 
+/// [`knn_f`] for distances that are all even integers below 2^33 (discrete actions: 2 ×
+/// the number of mismatches), `places` the entries' places in the order x descending,
+/// then seq ascending ([`crate::core::Pool`] keeps them). `None` if some distance is not
+/// such an integer; else exactly `knn_f`'s value, bit for bit.
+///
+/// Why the same K: for distinct even integers d < d' < 2^33, 1/d and 1/d' differ by a
+/// factor ≥ 1 + 2^-32, far above rounding, so P = (1/d)/Σ orders entries exactly as d
+/// does, and equal d give equal P. With exact matches, P is `share` for d = 0 and 0
+/// otherwise: ordering by d picks the same d = 0 entries (ties by place), and the P = 0
+/// entries of K add +0.0 whichever they are. So K is the first `k` entries by
+/// (d ascending, place ascending) — an integer key. `order` is the previous step's order
+/// of the same episode; distances move by 0 or 2 per step, so an insertion sort repairs
+/// it in about n steps instead of selecting anew. 1/d comes from a table, the sum over K
+/// in pool order is the one `knn_f` computes.
+pub(crate) fn knn_f_discrete(
+    dis: &[f64],
+    xs: &[f64],
+    places: &[u32],
+    k: usize,
+    order: &mut Vec<u32>,
+    scratch: &mut KnnScratch,
+) -> Option<f64> {
+    let n = dis.len();
+    debug_assert!(n > 0 && xs.len() == n && places.len() == n);
+    let keys = &mut scratch.dkeys;
+    keys.clear();
+    let mut valid = true;
+    let mut max_m = 0u32;
+    let mut exact = 0usize;
+    keys.extend(dis.iter().zip(places).map(|(&d, &place)| {
+        let m = (d * 0.5) as u32;
+        valid &= 2.0 * f64::from(m) == d;
+        max_m = max_m.max(m);
+        exact += usize::from(m == 0);
+        (u64::from(m) << 32) | u64::from(place)
+    }));
+    if !valid {
+        return None;
+    }
+    let p = &mut scratch.p;
+    p.clear();
+    if exact > 0 {
+        let share = 1.0 / exact as f64;
+        p.extend(
+            keys.iter()
+                .map(|&key| if key >> 32 == 0 { share } else { 0.0 }),
+        );
+    } else {
+        let inv = &mut scratch.inv;
+        let need = max_m as usize + 1;
+        if inv.len() < need {
+            let from = inv.len();
+            inv.extend((from..need).map(|m| 1.0 / (2.0 * m as f64)));
+        }
+        p.extend(keys.iter().map(|&key| inv[(key >> 32) as usize]));
+        let total: f64 = p.iter().sum();
+        p.iter_mut().for_each(|q| *q /= total);
+    }
+    if k >= n {
+        return Some(p.iter().zip(xs).map(|(&pi, &xi)| xi * pi).sum());
+    }
+    if order.len() != n {
+        order.clear();
+        order.extend(0..n as u32);
+    }
+    // Insertion sort by key (all distinct), starting from the previous order.
+    for j in 1..n {
+        let o = order[j];
+        let key = keys[o as usize];
+        let mut i = j;
+        while i > 0 && keys[order[i - 1] as usize] > key {
+            order[i] = order[i - 1];
+            i -= 1;
+        }
+        order[i] = o;
+    }
+    let pick = &mut scratch.pick;
+    pick.clear();
+    pick.resize(n, 0);
+    for &o in &order[..k] {
+        pick[o as usize] = 1;
+    }
+    Some(
+        p.iter()
+            .zip(xs)
+            .zip(pick.iter())
+            .map(|((&pi, &xi), &m)| (xi * pi) * f64::from(m))
+            .sum(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -145,17 +241,21 @@ mod tests {
         top.iter().map(|&i| xs[i] * p[i]).sum()
     }
 
-    #[test]
-    fn selection_matches_the_definition_bit_for_bit() {
-        // Small integer distances and few distinct scores: many ties in P and in x, and
-        // one scratch across pools of different sizes and contents.
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = |m: u64| {
+    /// A tiny deterministic PRNG: `next(m)` is below m.
+    fn xorshift(mut state: u64) -> impl FnMut(u64) -> u64 {
+        move |m| {
             state ^= state << 13;
             state ^= state >> 7;
             state ^= state << 17;
             state % m
-        };
+        }
+    }
+
+    #[test]
+    fn selection_matches_the_definition_bit_for_bit() {
+        // Small integer distances and few distinct scores: many ties in P and in x, and
+        // one scratch across pools of different sizes and contents.
+        let mut next = xorshift(0x2545_f491_4f6c_dd1d);
         let mut scratch = KnnScratch::default();
         for round in 0..3000 {
             let n = 1 + next(40) as usize;
@@ -181,6 +281,43 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn discrete_selection_matches_the_definition_bit_for_bit() {
+        let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
+        let mut scratch = KnnScratch::default();
+        let mut order = Vec::new();
+        for round in 0..3000 {
+            let n = 1 + next(40) as usize;
+            let spread = [3, 50, 3000][round % 3];
+            let mut dis: Vec<f64> = (0..n).map(|_| 2.0 * next(spread) as f64).collect();
+            let xs: Vec<f64> = (0..n).map(|_| next(4) as f64 / 3.0).collect();
+            let mut seqs: Vec<u64> = (0..n).map(|_| next(1000)).collect();
+            seqs.sort_unstable();
+            seqs.dedup();
+            let n = seqs.len();
+            let mut idx: Vec<usize> = (0..n).collect();
+            idx.sort_by(|&a, &b| xs[b].total_cmp(&xs[a]).then(seqs[a].cmp(&seqs[b])));
+            let mut places = vec![0u32; n];
+            for (place, &i) in idx.iter().enumerate() {
+                places[i] = place as u32;
+            }
+            // A few steps of one episode: distances move by 0 or 2, the order is kept.
+            for _ in 0..4 {
+                for k in [1, n / 2 + 1, n.saturating_sub(1).max(1), n] {
+                    let got =
+                        knn_f_discrete(&dis[..n], &xs[..n], &places, k, &mut order, &mut scratch);
+                    let want = knn_f_by_sort(&dis[..n], &xs[..n], &seqs, k);
+                    assert_eq!(got.map(f64::to_bits), Some(want.to_bits()), "n {n} k {k}");
+                }
+                dis.iter_mut().for_each(|d| *d += 2.0 * next(2) as f64);
+            }
+        }
+        assert_eq!(
+            knn_f_discrete(&[1.0], &[1.0], &[0], 1, &mut order, &mut scratch),
+            None
+        );
     }
 
     #[test]

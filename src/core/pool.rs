@@ -44,9 +44,21 @@ pub struct Pool {
     lens: Vec<usize>,
     xs: Vec<f64>,
     l_min: usize,
+    /// Per trajectory: its place in the order x descending, then seq ascending (the order
+    /// that breaks ties in P), so that a step need not sort by it.
+    places: Vec<u32>,
+    /// For a discrete pool, the actions laid out by step: row t holds every trajectory's
+    /// action at t (in pool order), [`NO_ACTION`] where t ≥ L_i; `step_rows` rows. Empty
+    /// (0 rows) if some trajectory is continuous or the padding would be too large.
+    by_step: Arc<[u32]>,
+    step_rows: usize,
     version: u64,
     next_seq: u64,
 }
+
+/// The entry of [`Pool::step_row`] for a trajectory that has no action at that step (no
+/// valid discrete action equals it: actions are `< num_actions ≤ u32::MAX`).
+pub(crate) const NO_ACTION: u32 = u32::MAX;
 
 impl Pool {
     /// An empty pool of the given capacity (≥ 1).
@@ -58,6 +70,9 @@ impl Pool {
             lens: Vec::new(),
             xs: Vec::new(),
             l_min: 0,
+            places: Vec::new(),
+            by_step: Arc::from(Vec::new()),
+            step_rows: 0,
             version: 0,
             next_seq: 1,
         }
@@ -123,6 +138,46 @@ impl Pool {
                 }
             })
             .collect();
+        let mut idx: Vec<usize> = (0..self.xs.len()).collect();
+        idx.sort_unstable_by(|&a, &b| {
+            self.xs[b]
+                .total_cmp(&self.xs[a])
+                .then_with(|| self.seqs[a].cmp(&self.seqs[b]))
+        });
+        self.places = vec![0; idx.len()];
+        for (place, &i) in idx.iter().enumerate() {
+            self.places[i] = place as u32;
+        }
+        self.build_by_step();
+    }
+
+    /// Lays the actions of a discrete pool out by step (see `by_step`), unless the pool
+    /// holds continuous actions or rows padded to the longest trajectory would take more
+    /// than twice the actions themselves (plus a little).
+    fn build_by_step(&mut self) {
+        let n = self.trajectories.len();
+        let l_max = self.lens.iter().copied().max().unwrap_or(0);
+        let total: usize = self.lens.iter().sum();
+        let discrete = self
+            .trajectories
+            .iter()
+            .all(|t| matches!(t.actions, ActionSeq::Discrete(_)));
+        let cells = n.saturating_mul(l_max);
+        if !discrete || n > u32::MAX as usize || cells > total.saturating_mul(2) + (1 << 16) {
+            self.by_step = Arc::from(Vec::new());
+            self.step_rows = 0;
+            return;
+        }
+        let mut rows = vec![NO_ACTION; cells];
+        for (i, traj) in self.trajectories.iter().enumerate() {
+            if let ActionSeq::Discrete(v) = &traj.actions {
+                for (t, &a) in v.iter().enumerate() {
+                    rows[t * n + i] = a;
+                }
+            }
+        }
+        self.by_step = Arc::from(rows);
+        self.step_rows = l_max;
     }
 
     /// The change that offering an episode with these actions and this score would make:
@@ -211,6 +266,26 @@ impl Pool {
     /// Normalised scores x_i (SPEC §3.2), aligned with [`Pool::trajectories`].
     pub fn xs(&self) -> &[f64] {
         &self.xs
+    }
+    /// Per trajectory, its place in the order x descending, then seq ascending.
+    pub(crate) fn places(&self) -> &[u32] {
+        &self.places
+    }
+    /// For a pool laid out by step ([`Pool::by_step`]): every trajectory's action at step
+    /// `t` ([`NO_ACTION`] where t ≥ L_i), aligned with [`Pool::trajectories`]; `None` past
+    /// the longest trajectory or if the pool is not laid out by step.
+    pub(crate) fn step_row(&self, t: usize) -> Option<&[u32]> {
+        let n = self.trajectories.len();
+        if t < self.step_rows {
+            self.by_step.get(t * n..(t + 1) * n)
+        } else {
+            None
+        }
+    }
+    /// Whether the pool is laid out by step ([`Pool::step_row`]): all discrete, rows
+    /// past the longest trajectory absent (no trajectory has an action there).
+    pub(crate) fn by_step(&self) -> bool {
+        self.step_rows > 0 || self.trajectories.is_empty()
     }
     /// L_min, 0 if empty.
     pub fn l_min(&self) -> usize {
