@@ -71,9 +71,6 @@ pub struct Episode {
     dis: Vec<f64>,
     /// The previous `dis` allocation, reused by the next sync.
     spare: Vec<f64>,
-    /// The trajectories (indices into `dis`) in the kNN order of the previous step, which
-    /// the next step repairs rather than selecting anew (see [`knn_f_discrete`]).
-    order: Vec<u32>,
 }
 
 /// Σ_{j<upto} δ(a_j, b_j) of two action sequences, summed in j order (the definition).
@@ -104,7 +101,6 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
-            order: Vec::new(),
         }
     }
 
@@ -123,7 +119,6 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
-            order: Vec::new(),
         }
     }
 
@@ -252,8 +247,8 @@ impl Episode {
                     &self.dis,
                     pool.xs(),
                     pool.places(),
+                    pool.by_place(),
                     k,
-                    &mut self.order,
                     scratch,
                 )
             } else {

@@ -23,14 +23,40 @@ pub struct KnnScratch {
     /// Per entry: `u64::MAX` minus its place in the order (x descending, seq ascending).
     rank: Vec<u64>,
     idx: Vec<usize>,
-    /// [`knn_f_discrete`]: per entry, (d / 2) in the high half and its place in the
-    /// (x, seq) order in the low half.
-    dkeys: Vec<u64>,
+    /// [`knn_f_discrete`]: per entry, d / 2.
+    ms: Vec<u32>,
+    /// [`knn_f_discrete`]: a copy of `ms` for the selection.
+    sel_m: Vec<u32>,
+    /// [`knn_f_discrete`]: entries per m − min m.
+    hist: Hist,
     /// [`knn_f_discrete`]: `inv[m]` = 1 / (2m), as `1.0 / d` computes it.
     inv: Vec<f64>,
     /// Per trajectory: whether its action at the current step differs (0 or 1), for the
     /// distance update of discrete episodes.
     pub(crate) mismatch: Vec<i32>,
+}
+
+/// The counting buffer of [`knn_f_discrete`]: ranges of m up to its length are counted.
+#[derive(Debug, Clone)]
+struct Hist(Box<[u32; 256]>);
+
+impl Default for Hist {
+    fn default() -> Hist {
+        Hist(Box::new([0; 256]))
+    }
+}
+
+impl std::ops::Deref for Hist {
+    type Target = [u32];
+    fn deref(&self) -> &[u32] {
+        &self.0[..]
+    }
+}
+
+impl std::ops::DerefMut for Hist {
+    fn deref_mut(&mut self) -> &mut [u32] {
+        &mut self.0[..]
+    }
 }
 
 /// An integer with the order of [`f64::total_cmp`].
@@ -125,50 +151,47 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
 /// [`knn_f`] for distances that are all even integers below 2^33 (discrete actions: 2 ×
 /// the number of mismatches), `places` the entries' places in the order x descending,
 /// then seq ascending ([`crate::core::Pool`] keeps them). `None` if some distance is not
-/// such an integer; else exactly `knn_f`'s value, bit for bit.
+/// such an integer (or k = 0); else exactly `knn_f`'s value, bit for bit.
 ///
 /// Why the same K: for distinct even integers d < d' < 2^33, 1/d and 1/d' differ by a
 /// factor ≥ 1 + 2^-32, far above rounding, so P = (1/d)/Σ orders entries exactly as d
 /// does, and equal d give equal P. With exact matches, P is `share` for d = 0 and 0
 /// otherwise: ordering by d picks the same d = 0 entries (ties by place), and the P = 0
 /// entries of K add +0.0 whichever they are. So K is the first `k` entries by
-/// (d ascending, place ascending) — an integer key. `order` is the previous step's order
-/// of the same episode; distances move by 0 or 2 per step, so an insertion sort repairs
-/// it in about n steps instead of selecting anew. 1/d comes from a table, the sum over K
-/// in pool order is the one `knn_f` computes.
+/// (d ascending, place ascending): every entry below the k-th smallest m = d/2, found by
+/// counting over the (small) range of m, plus the first of those at it in place order
+/// (`by_place`, the inverse of `places`). 1/d comes from a table; the sum over K in pool
+/// order is the one `knn_f` computes.
 pub(crate) fn knn_f_discrete(
     dis: &[f64],
     xs: &[f64],
     places: &[u32],
+    by_place: &[u32],
     k: usize,
-    order: &mut Vec<u32>,
     scratch: &mut KnnScratch,
 ) -> Option<f64> {
     let n = dis.len();
-    debug_assert!(n > 0 && xs.len() == n && places.len() == n);
-    let keys = &mut scratch.dkeys;
-    keys.clear();
+    debug_assert!(n > 0 && xs.len() == n && places.len() == n && by_place.len() == n);
+    let ms = &mut scratch.ms;
+    ms.clear();
     let mut valid = true;
-    let mut max_m = 0u32;
-    let mut exact = 0usize;
-    keys.extend(dis.iter().zip(places).map(|(&d, &place)| {
+    let (mut min_m, mut max_m) = (u32::MAX, 0u32);
+    ms.extend(dis.iter().map(|&d| {
         let m = (d * 0.5) as u32;
         valid &= 2.0 * f64::from(m) == d;
+        min_m = min_m.min(m);
         max_m = max_m.max(m);
-        exact += usize::from(m == 0);
-        (u64::from(m) << 32) | u64::from(place)
+        m
     }));
-    if !valid {
+    if !valid || k == 0 {
         return None;
     }
     let p = &mut scratch.p;
     p.clear();
-    if exact > 0 {
+    if min_m == 0 {
+        let exact = ms.iter().filter(|&&m| m == 0).count();
         let share = 1.0 / exact as f64;
-        p.extend(
-            keys.iter()
-                .map(|&key| if key >> 32 == 0 { share } else { 0.0 }),
-        );
+        p.extend(ms.iter().map(|&m| if m == 0 { share } else { 0.0 }));
     } else {
         let inv = &mut scratch.inv;
         let need = max_m as usize + 1;
@@ -176,33 +199,49 @@ pub(crate) fn knn_f_discrete(
             let from = inv.len();
             inv.extend((from..need).map(|m| 1.0 / (2.0 * m as f64)));
         }
-        p.extend(keys.iter().map(|&key| inv[(key >> 32) as usize]));
+        p.extend(ms.iter().map(|&m| inv[m as usize]));
         let total: f64 = p.iter().sum();
         p.iter_mut().for_each(|q| *q /= total);
     }
     if k >= n {
         return Some(p.iter().zip(xs).map(|(&pi, &xi)| xi * pi).sum());
     }
-    if order.len() != n {
-        order.clear();
-        order.extend(0..n as u32);
-    }
-    // Insertion sort by key (all distinct), starting from the previous order.
-    for j in 1..n {
-        let o = order[j];
-        let key = keys[o as usize];
-        let mut i = j;
-        while i > 0 && keys[order[i - 1] as usize] > key {
-            order[i] = order[i - 1];
-            i -= 1;
+    // The k-th smallest m (m*), and how many entries lie below it: by counting when the
+    // range of m is small (distances of one episode move together), else by selection.
+    let range = (max_m - min_m) as usize + 1;
+    let (threshold, below) = if range <= scratch.hist.len() {
+        let hist = &mut scratch.hist[..range];
+        hist.fill(0);
+        for &m in ms.iter() {
+            hist[(m - min_m) as usize] += 1;
         }
-        order[i] = o;
-    }
+        let mut below = 0usize;
+        let mut at = 0usize;
+        while below + (hist[at] as usize) < k {
+            below += hist[at] as usize;
+            at += 1;
+        }
+        (min_m + at as u32, below)
+    } else {
+        let sel = &mut scratch.sel_m;
+        sel.clear();
+        sel.extend_from_slice(ms);
+        let (_, &mut threshold, _) = sel.select_nth_unstable(k - 1);
+        (threshold, ms.iter().filter(|&&m| m < threshold).count())
+    };
     let pick = &mut scratch.pick;
     pick.clear();
-    pick.resize(n, 0);
-    for &o in &order[..k] {
-        pick[o as usize] = 1;
+    pick.extend(ms.iter().map(|&m| i32::from(m < threshold)));
+    // Of the entries at m*, the k − below first in place order.
+    let mut need = k - below;
+    for &i in by_place {
+        if need == 0 {
+            break;
+        }
+        if ms[i as usize] == threshold {
+            pick[i as usize] = 1;
+            need -= 1;
+        }
     }
     Some(
         p.iter()
@@ -287,10 +326,9 @@ mod tests {
     fn discrete_selection_matches_the_definition_bit_for_bit() {
         let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
         let mut scratch = KnnScratch::default();
-        let mut order = Vec::new();
         for round in 0..3000 {
             let n = 1 + next(40) as usize;
-            let spread = [3, 50, 3000][round % 3];
+            let spread = [3, 50, 200, 3000][round % 4];
             let mut dis: Vec<f64> = (0..n).map(|_| 2.0 * next(spread) as f64).collect();
             let xs: Vec<f64> = (0..n).map(|_| next(4) as f64 / 3.0).collect();
             let mut seqs: Vec<u64> = (0..n).map(|_| next(1000)).collect();
@@ -299,6 +337,7 @@ mod tests {
             let n = seqs.len();
             let mut idx: Vec<usize> = (0..n).collect();
             idx.sort_by(|&a, &b| xs[b].total_cmp(&xs[a]).then(seqs[a].cmp(&seqs[b])));
+            let by_place: Vec<u32> = idx.iter().map(|&i| i as u32).collect();
             let mut places = vec![0u32; n];
             for (place, &i) in idx.iter().enumerate() {
                 places[i] = place as u32;
@@ -307,7 +346,7 @@ mod tests {
             for _ in 0..4 {
                 for k in [1, n / 2 + 1, n.saturating_sub(1).max(1), n] {
                     let got =
-                        knn_f_discrete(&dis[..n], &xs[..n], &places, k, &mut order, &mut scratch);
+                        knn_f_discrete(&dis[..n], &xs[..n], &places, &by_place, k, &mut scratch);
                     let want = knn_f_by_sort(&dis[..n], &xs[..n], &seqs, k);
                     assert_eq!(got.map(f64::to_bits), Some(want.to_bits()), "n {n} k {k}");
                 }
@@ -315,7 +354,7 @@ mod tests {
             }
         }
         assert_eq!(
-            knn_f_discrete(&[1.0], &[1.0], &[0], 1, &mut order, &mut scratch),
+            knn_f_discrete(&[1.0], &[1.0], &[0], &[0], 1, &mut scratch),
             None
         );
     }

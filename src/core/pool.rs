@@ -47,6 +47,8 @@ pub struct Pool {
     /// Per trajectory: its place in the order x descending, then seq ascending (the order
     /// that breaks ties in P), so that a step need not sort by it.
     places: Vec<u32>,
+    /// The trajectories (indices) in that order: the inverse of `places`.
+    by_place: Vec<u32>,
     /// For a discrete pool, the actions laid out by step: row t holds every trajectory's
     /// action at t (in pool order), [`NO_ACTION`] where t ≥ L_i; `step_rows` rows. Empty
     /// (0 rows) if some trajectory is continuous or the padding would be too large.
@@ -71,6 +73,7 @@ impl Pool {
             xs: Vec::new(),
             l_min: 0,
             places: Vec::new(),
+            by_place: Vec::new(),
             by_step: Arc::from(Vec::new()),
             step_rows: 0,
             version: 0,
@@ -148,6 +151,7 @@ impl Pool {
         for (place, &i) in idx.iter().enumerate() {
             self.places[i] = place as u32;
         }
+        self.by_place = idx.iter().map(|&i| i as u32).collect();
         self.build_by_step();
     }
 
@@ -270,6 +274,10 @@ impl Pool {
     /// Per trajectory, its place in the order x descending, then seq ascending.
     pub(crate) fn places(&self) -> &[u32] {
         &self.places
+    }
+    /// The trajectories (indices) by place: the inverse of [`Pool::places`].
+    pub(crate) fn by_place(&self) -> &[u32] {
+        &self.by_place
     }
     /// For a pool laid out by step ([`Pool::by_step`]): every trajectory's action at step
     /// `t` ([`NO_ACTION`] where t ≥ L_i), aligned with [`Pool::trajectories`]; `None` past
