@@ -25,7 +25,7 @@ from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 
 def abandon_unsupported(err: tamrm.TamrmError) -> bool:
     """Whether ``err`` says that the server does not implement ``StepBatch.abandon``."""
-    return err.code == grpc.StatusCode.UNIMPLEMENTED and "abandon" in err.details
+    return err.code == tamrm.StatusCode.UNIMPLEMENTED and "abandon" in err.details
 
 
 def stored(client: tamrm.Client, task_id: str) -> list[tuple[list[int], float]]:

@@ -332,27 +332,34 @@ def test_error_hierarchy() -> None:
 
 
 def test_status_codes_map_to_exceptions() -> None:
-    """Every status the server documents maps to its class (FAILED_PRECONDITION has no
-    server path that produces it yet, so it is checked here only)."""
+    """Every status the server documents maps to its class, also from the native
+    extension's (code number, message) form; the numbers are gRPC's wire values."""
     import grpc
 
-    from tamrm._errors import from_status
+    from tamrm import _native
+    from tamrm._errors import from_native, from_status
+
+    for code in grpc.StatusCode:  # the codes' numbers are gRPC's own
+        assert tamrm.StatusCode(code.value[0]).name == code.name
 
     expected = {
-        grpc.StatusCode.INVALID_ARGUMENT: tamrm.InvalidArgument,
-        grpc.StatusCode.NOT_FOUND: tamrm.TaskNotFound,
-        grpc.StatusCode.ALREADY_EXISTS: tamrm.AlreadyExists,
-        grpc.StatusCode.RESOURCE_EXHAUSTED: tamrm.ResourceExhausted,
-        grpc.StatusCode.FAILED_PRECONDITION: tamrm.FailedPrecondition,
-        grpc.StatusCode.UNAVAILABLE: tamrm.Unavailable,
-        grpc.StatusCode.DEADLINE_EXCEEDED: tamrm.DeadlineExceeded,
+        tamrm.StatusCode.INVALID_ARGUMENT: tamrm.InvalidArgument,
+        tamrm.StatusCode.NOT_FOUND: tamrm.TaskNotFound,
+        tamrm.StatusCode.ALREADY_EXISTS: tamrm.AlreadyExists,
+        tamrm.StatusCode.RESOURCE_EXHAUSTED: tamrm.ResourceExhausted,
+        tamrm.StatusCode.FAILED_PRECONDITION: tamrm.FailedPrecondition,
+        tamrm.StatusCode.UNAVAILABLE: tamrm.Unavailable,
+        tamrm.StatusCode.DEADLINE_EXCEEDED: tamrm.DeadlineExceeded,
     }
     for code, cls in expected.items():
         err = from_status(code, "open.num_envs: must be >= 1")
         assert type(err) is cls
         assert err.code == code and err.details == "open.num_envs: must be >= 1"
-    other = from_status(grpc.StatusCode.INTERNAL, "boom")
-    assert type(other) is tamrm.TamrmError and other.code == grpc.StatusCode.INTERNAL
+        native = from_native(_native.StatusError(code.value, "m"))
+        assert type(native) is cls and native.code is code and native.details == "m"
+    other = from_status(tamrm.StatusCode.INTERNAL, "boom")
+    assert type(other) is tamrm.TamrmError and other.code == tamrm.StatusCode.INTERNAL
+    assert from_native(_native.StatusError(99, "odd")).code is tamrm.StatusCode.UNKNOWN
 
 
 def test_deadline_exceeded(server: tamrm.LocalServer) -> None:

@@ -66,3 +66,20 @@ def test_stubs_import_inside_the_package() -> None:
     ]
     # The stubs did not shadow or get shadowed by the client package.
     assert "tamrm.v1" not in sys.modules
+
+
+def test_the_package_runs_without_grpcio() -> None:
+    # Every transport is native: importing the package and its submodules, and a call,
+    # loads no grpcio (a dev dependency only, for the tests' stand-in old server).
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, tamrm, tamrm.aio, tamrm.gym\n"
+        "e = tamrm.Engine(); e.create_task('t', num_actions=2)\n"
+        "assert tamrm._server.health_check('127.0.0.1:9', timeout=0.1) is False\n"
+        "bad = [m for m in sys.modules if m.startswith('grpc')]\n"
+        "assert not bad, bad\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr

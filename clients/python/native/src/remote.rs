@@ -33,6 +33,7 @@ const SIGNAL_CHECK: Duration = Duration::from_millis(100);
 #[pyclass(frozen, module = "tamrm._native")]
 pub struct Channel {
     endpoint: Endpoint,
+    channel: TonicChannel,
     client: ShapingClient<TonicChannel>,
     metadata: MetadataMap,
     rt: &'static Runtime,
@@ -157,7 +158,8 @@ impl Channel {
         };
         Ok(Channel {
             endpoint,
-            client: client(channel),
+            client: client(channel.clone()),
+            channel,
             metadata: md,
             rt,
         })
@@ -238,6 +240,39 @@ impl Channel {
                 Code::Unavailable,
                 format!("could not connect to {} in {timeout}s", self.endpoint.uri()),
             )
+        })
+    }
+
+    /// Whether `grpc.health.v1.Health/Check` answers SERVING for `service` within
+    /// `timeout` seconds (retrying while the server cannot be reached yet).
+    fn health(&self, py: Python<'_>, service: &str, timeout: f64) -> bool {
+        let (channel, md, rt) = (self.channel.clone(), &self.metadata, self.rt);
+        let wait = Duration::try_from_secs_f64(timeout).unwrap_or(Duration::ZERO);
+        py.detach(|| {
+            rt.block_on(async {
+                let deadline = tokio::time::Instant::now() + wait;
+                let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+                loop {
+                    let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+                    let req = tonic_health::pb::HealthCheckRequest {
+                        service: service.to_string(),
+                    };
+                    let answer =
+                        tokio::time::timeout(left, health.check(request(req, md, Some(left))))
+                            .await;
+                    match answer {
+                        Ok(Ok(r)) => {
+                            return r.get_ref().status
+                                == tonic_health::pb::health_check_response::ServingStatus::Serving
+                                    as i32
+                        }
+                        Ok(Err(s)) if s.code() == Code::Unavailable && !left.is_zero() => {
+                            tokio::time::sleep(Duration::from_millis(50).min(left)).await;
+                        }
+                        _ => return false,
+                    }
+                }
+            })
         })
     }
 

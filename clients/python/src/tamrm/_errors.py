@@ -7,7 +7,7 @@ exception's message and is kept in :attr:`TamrmError.details`.
 
 from __future__ import annotations
 
-import grpc
+import enum
 
 __all__ = [
     "AlreadyExists",
@@ -16,13 +16,35 @@ __all__ = [
     "InvalidArgument",
     "ResourceExhausted",
     "SessionClosed",
+    "StatusCode",
     "TamrmError",
     "TaskNotFound",
     "Unavailable",
     "from_native",
-    "from_rpc_error",
     "from_status",
 ]
+
+
+class StatusCode(enum.Enum):
+    """The gRPC status codes (their numbers are the wire values)."""
+
+    OK = 0
+    CANCELLED = 1
+    UNKNOWN = 2
+    INVALID_ARGUMENT = 3
+    DEADLINE_EXCEEDED = 4
+    NOT_FOUND = 5
+    ALREADY_EXISTS = 6
+    PERMISSION_DENIED = 7
+    RESOURCE_EXHAUSTED = 8
+    FAILED_PRECONDITION = 9
+    ABORTED = 10
+    OUT_OF_RANGE = 11
+    UNIMPLEMENTED = 12
+    INTERNAL = 13
+    UNAVAILABLE = 14
+    DATA_LOSS = 15
+    UNAUTHENTICATED = 16
 
 
 class TamrmError(Exception):
@@ -34,9 +56,9 @@ class TamrmError(Exception):
         details: The server's message, which names the offending field or task.
     """
 
-    code: grpc.StatusCode | None = None
+    code: StatusCode | None = None
 
-    def __init__(self, details: str, code: grpc.StatusCode | None = None) -> None:
+    def __init__(self, details: str, code: StatusCode | None = None) -> None:
         super().__init__(details)
         self.details = details
         if code is not None:
@@ -54,43 +76,43 @@ class InvalidArgument(TamrmError):
     non-finite numbers, wrong column lengths and similar; the message names the field.
     """
 
-    code = grpc.StatusCode.INVALID_ARGUMENT
+    code = StatusCode.INVALID_ARGUMENT
 
 
 class TaskNotFound(TamrmError):
     """The task does not exist, or was deleted while a session was open (``NOT_FOUND``)."""
 
-    code = grpc.StatusCode.NOT_FOUND
+    code = StatusCode.NOT_FOUND
 
 
 class AlreadyExists(TamrmError):
     """A task with this id exists with a different configuration (``ALREADY_EXISTS``)."""
 
-    code = grpc.StatusCode.ALREADY_EXISTS
+    code = StatusCode.ALREADY_EXISTS
 
 
 class ResourceExhausted(TamrmError):
     """A configured server limit was reached (``RESOURCE_EXHAUSTED``)."""
 
-    code = grpc.StatusCode.RESOURCE_EXHAUSTED
+    code = StatusCode.RESOURCE_EXHAUSTED
 
 
 class FailedPrecondition(TamrmError):
     """The request is valid but the server's state does not allow it (``FAILED_PRECONDITION``)."""
 
-    code = grpc.StatusCode.FAILED_PRECONDITION
+    code = StatusCode.FAILED_PRECONDITION
 
 
 class Unavailable(TamrmError):
     """The server could not be reached or is shutting down (``UNAVAILABLE``)."""
 
-    code = grpc.StatusCode.UNAVAILABLE
+    code = StatusCode.UNAVAILABLE
 
 
 class DeadlineExceeded(TamrmError):
     """The call's timeout expired before the server answered (``DEADLINE_EXCEEDED``)."""
 
-    code = grpc.StatusCode.DEADLINE_EXCEEDED
+    code = StatusCode.DEADLINE_EXCEEDED
 
 
 class SessionClosed(TamrmError):
@@ -100,7 +122,7 @@ class SessionClosed(TamrmError):
     """
 
 
-_BY_CODE: dict[grpc.StatusCode, type[TamrmError]] = {
+_BY_CODE: dict[StatusCode, type[TamrmError]] = {
     cls.code: cls
     for cls in (
         InvalidArgument,
@@ -115,27 +137,17 @@ _BY_CODE: dict[grpc.StatusCode, type[TamrmError]] = {
 }
 
 
-def from_rpc_error(err: grpc.RpcError) -> TamrmError:
-    """Translate a ``grpc.RpcError`` (sync or asyncio) into the matching :class:`TamrmError`."""
-    code_fn = getattr(err, "code", None)
-    details_fn = getattr(err, "details", None)
-    code = code_fn() if callable(code_fn) else grpc.StatusCode.UNKNOWN
-    details = details_fn() if callable(details_fn) else None
-    if not details:
-        details = str(err)
-    return from_status(code, details)
-
-
-_BY_NUMBER: dict[int, grpc.StatusCode] = {code.value[0]: code for code in grpc.StatusCode}
-
-
 def from_native(err: BaseException) -> TamrmError:
     """Translate the native extension's ``StatusError(code, message)`` to a :class:`TamrmError`."""
     number, message = err.args if len(err.args) == 2 else (2, str(err))
-    return from_status(_BY_NUMBER.get(int(number), grpc.StatusCode.UNKNOWN), str(message))
+    try:
+        code = StatusCode(int(number))
+    except ValueError:
+        code = StatusCode.UNKNOWN
+    return from_status(code, str(message))
 
 
-def from_status(code: grpc.StatusCode, details: str | None) -> TamrmError:
+def from_status(code: StatusCode, details: str | None) -> TamrmError:
     """Build the :class:`TamrmError` subclass for a status code and message."""
     cls = _BY_CODE.get(code, TamrmError)
     return cls(details or code.name, code)

@@ -14,8 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import grpc
-from grpc_health.v1 import health_pb2, health_pb2_grpc
+from tamrm import _native
 
 __all__ = ["LocalServer", "ServerStartError", "find_binary", "health_check", "local_server"]
 
@@ -67,15 +66,10 @@ def health_check(target: str, service: str = "", timeout: float = 2.0) -> bool:
 
     Returns ``False`` on any error.
     """
-    with grpc.insecure_channel(target) as channel:
-        check = health_pb2_grpc.HealthStub(channel).Check
-        try:
-            answer = check(
-                health_pb2.HealthCheckRequest(service=service), timeout=timeout, wait_for_ready=True
-            )
-        except grpc.RpcError:
-            return False
-    return bool(answer.status == health_pb2.HealthCheckResponse.SERVING)
+    try:
+        return _native.Channel(target).health(service, timeout)
+    except (ValueError, _native.StatusError):
+        return False
 
 
 @dataclass

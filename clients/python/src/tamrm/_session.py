@@ -343,4 +343,3 @@ def _reopen(client: Any, task_id: str, num_envs: int) -> Session:
     session: Session = client.session(task_id, num_envs)
     session._unpickled = True
     return session
-
