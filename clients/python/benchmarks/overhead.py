@@ -1,17 +1,32 @@
 #!/usr/bin/env python3
 """Measure what shaping through tamrm costs a training loop.
 
-1. A 16-env CartPole-v1 gymnasium vector loop (random actions): plain, shaped with
-   ``VectorShapedReward`` (no values), and shaped with a value function (a small numpy
-   linear critic, so that the cost measured is the client's and the server's).
-2. A Stable-Baselines3 A2C training run on CartPole-v1, plain and through
-   ``ShapedVecEnv`` with the model's own values bound.
+Workloads:
 
-Each configuration is run ``--repeats`` times; the medians are reported as a markdown
-table (paste it into docs/python.md). Run on an otherwise idle machine::
+1. A 16-env CartPole-v1 gymnasium vector loop (random actions), plain and shaped with
+   ``VectorShapedReward`` (no values; ``--value-fn`` adds runs with a small numpy linear
+   critic, so that the cost measured is tamrm's, not a network's).
+2. A Stable-Baselines3 A2C ``learn()`` on CartPole-v1 (8 envs, a fixed number of
+   timesteps), plain and through ``ShapedVecEnv`` with the model's own values bound
+   (``bind_model``).
 
-    python clients/python/benchmarks/overhead.py            # full
+Variants (shaping backends): ``plain`` (no shaping), ``engine`` (``tamrm.Engine()``, in
+memory), ``engine-dir`` (``tamrm.Engine(data_dir)``, durable), ``remote`` (``tamrm.Client``
+to a local server without ``--data-dir``) and ``remote-dir`` (to a local server with
+``--data-dir``); with ``--server ADDR`` the two remote variants are replaced by one,
+``server``, on that address. Each run uses a fresh task (created before, deleted after the
+timing).
+
+Every variant is run once as a warm-up, then ``--repeats`` times, **interleaved**: each
+repeat runs every variant once, in an order rotated by one each repeat, so that the
+machine's load drifts over all variants alike. The table (markdown, to paste into
+docs/python.md) gives per workload and variant the median time, the throughput, the
+median over repeats of the overhead against that repeat's plain run, and the overhead per
+vector step::
+
+    python clients/python/benchmarks/overhead.py            # full (5 repeats)
     python clients/python/benchmarks/overhead.py --quick    # a fast smoke run
+    python clients/python/benchmarks/overhead.py --repeats 3 --variants plain,engine
 """
 
 from __future__ import annotations
@@ -21,9 +36,12 @@ import contextlib
 import os
 import platform
 import statistics
+import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -31,33 +49,46 @@ import numpy as np
 import tamrm
 import tamrm.gym
 
+VARIANTS = ("plain", "engine", "engine-dir", "remote", "remote-dir")
+LABELS = {
+    "plain": "no shaping",
+    "engine": "Engine, in memory",
+    "engine-dir": "Engine, data dir",
+    "remote": "Client, server in memory",
+    "remote-dir": "Client, server --data-dir",
+    "server": "Client, --server",
+}
+
+# A shaping backend: tamrm.Engine or tamrm.Client (None: no shaping).
+Backend = Any
+
 
 def _vector_env(num_envs: int) -> gym.vector.SyncVectorEnv:
     return gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1") for _ in range(num_envs)])
 
 
-def _linear_value(obs: np.ndarray) -> np.ndarray:
+def _linear_value(obs: Any) -> np.ndarray:
     return np.asarray(obs, dtype=np.float64) @ np.array([0.1, -0.2, 0.3, 0.05])
 
 
 @contextlib.contextmanager
-def _shaped(client: tamrm.Client | None, num_envs: int) -> Iterator[tamrm.Session | None]:
-    if client is None:
+def _shaped(backend: Backend | None, num_envs: int) -> Iterator[tamrm.Session | None]:
+    if backend is None:
         yield None
         return
     task_id = f"bench/{uuid.uuid4().hex[:12]}"
-    client.create_task(task_id, num_actions=2)
+    backend.create_task(task_id, num_actions=2)
     try:
-        with client.session(task_id, num_envs) as session:
+        with backend.session(task_id, num_envs) as session:
             yield session
     finally:
-        client.delete_task(task_id)
+        backend.delete_task(task_id)
 
 
-def vector_loop(client: tamrm.Client | None, num_envs: int, steps: int, with_values: bool) -> float:
+def vector_loop(backend: Backend | None, num_envs: int, steps: int, with_values: bool) -> float:
     """Seconds for ``steps`` vector steps of ``num_envs`` CartPoles."""
     rng = np.random.default_rng(0)
-    with _shaped(client, num_envs) as session:
+    with _shaped(backend, num_envs) as session:
         env: gym.vector.VectorEnv = _vector_env(num_envs)
         if session is not None:
             env = tamrm.gym.VectorShapedReward(
@@ -73,7 +104,7 @@ def vector_loop(client: tamrm.Client | None, num_envs: int, steps: int, with_val
     return elapsed
 
 
-def a2c_run(client: tamrm.Client | None, num_envs: int, timesteps: int) -> float:
+def a2c_run(backend: Backend | None, num_envs: int, timesteps: int) -> float:
     """Seconds for an A2C ``learn(timesteps)`` on CartPole-v1."""
     import torch
     from stable_baselines3 import A2C
@@ -82,7 +113,7 @@ def a2c_run(client: tamrm.Client | None, num_envs: int, timesteps: int) -> float
     import tamrm.sb3
 
     torch.set_num_threads(1)
-    with _shaped(client, num_envs) as session:
+    with _shaped(backend, num_envs) as session:
         venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
         env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
         model = A2C("MlpPolicy", env, seed=0, device="cpu")
@@ -95,77 +126,117 @@ def a2c_run(client: tamrm.Client | None, num_envs: int, timesteps: int) -> float
     return elapsed
 
 
-def median_of(repeats: int, run: Callable[[], float]) -> tuple[float, list[float]]:
-    """Median (and all samples) of ``repeats`` runs, after one warm-up run."""
-    run()
-    samples = [run() for _ in range(repeats)]
-    return statistics.median(samples), samples
+def interleaved(
+    variants: list[str], repeats: int, run: Callable[[str], float], what: str
+) -> dict[str, list[float]]:
+    """Samples per variant: one warm-up each, then ``repeats`` rounds, order rotated."""
+    for name in variants:
+        run(name)
+    samples: dict[str, list[float]] = {name: [] for name in variants}
+    for r in range(repeats):
+        order = variants[r % len(variants) :] + variants[: r % len(variants)]
+        for name in order:
+            secs = run(name)
+            samples[name].append(secs)
+            print(f"{what} repeat {r + 1} {name:10s} {secs:.3f} s", file=sys.stderr)
+    return samples
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--server", help="tamrm server address (default: start a local one)")
+    parser.add_argument("--server", help="tamrm server address (default: start local ones)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--steps", type=int, default=1000, help="vector steps per loop run")
     parser.add_argument("--a2c-envs", type=int, default=8)
     parser.add_argument("--a2c-timesteps", type=int, default=20000)
     parser.add_argument("--no-sb3", action="store_true", help="skip the A2C runs")
+    parser.add_argument("--no-loop", action="store_true", help="skip the vector-loop runs")
+    parser.add_argument(
+        "--value-fn", action="store_true", help="also time the loop with a linear value_fn"
+    )
+    parser.add_argument(
+        "--variants", help=f"comma-separated subset of {','.join(VARIANTS)} (plain is always run)"
+    )
     parser.add_argument("--quick", action="store_true", help="small sizes, 2 repeats")
     ns = parser.parse_args()
     if ns.quick:
         ns.repeats, ns.steps, ns.a2c_timesteps = 2, 300, 4000
+    variants = list(VARIANTS) if not ns.variants else ["plain", *ns.variants.split(",")]
+    variants = list(dict.fromkeys(v for v in variants if v))
+    if ns.server:
+        variants = [v for v in variants if not v.startswith("remote")] + ["server"]
 
+    load = [os.getloadavg()]
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     with contextlib.ExitStack() as stack:
-        servers: dict[str, tamrm.Client] = {}
-        if ns.server:
-            servers["server"] = stack.enter_context(tamrm.Client(ns.server))
-        else:
-            durable = stack.enter_context(tamrm.local_server())
-            memory = stack.enter_context(tamrm.local_server(in_memory=True))
-            servers["--data-dir"] = stack.enter_context(tamrm.Client(durable.address))
-            servers["in-memory"] = stack.enter_context(tamrm.Client(memory.address))
+        backends: dict[str, Backend | None] = {"plain": None}
+        tmp = stack.enter_context(tempfile.TemporaryDirectory())
+        for name in variants:
+            if name == "engine":
+                backends[name] = stack.enter_context(tamrm.Engine())
+            elif name == "engine-dir":
+                backends[name] = stack.enter_context(tamrm.Engine(os.path.join(tmp, "engine")))
+            elif name == "remote":
+                server = stack.enter_context(tamrm.local_server(in_memory=True))
+                backends[name] = stack.enter_context(tamrm.Client(server.address))
+            elif name == "remote-dir":
+                server = stack.enter_context(tamrm.local_server())
+                backends[name] = stack.enter_context(tamrm.Client(server.address))
+            elif name == "server":
+                backends[name] = stack.enter_context(tamrm.Client(ns.server))
+            elif name != "plain":
+                parser.error(f"unknown variant {name!r}")
 
-        rows: list[tuple[str, str, float, float]] = []
+        # (workload, vector steps per run, variant -> samples)
+        tables: list[tuple[str, int, dict[str, list[float]], int]] = []
         n, steps = ns.num_envs, ns.steps
-        loop = f"{n}-env CartPole-v1 loop, {steps} vector steps"
-        base, _ = median_of(ns.repeats, lambda: vector_loop(None, n, steps, False))
-        rows.append((loop, "plain", base, n * steps / base))
-        for label, client in servers.items():
-            for with_values in (False, True):
-                secs, _ = median_of(
+        if not ns.no_loop:
+            for with_values in (False, True) if ns.value_fn else (False,):
+                loop = f"{n}-env CartPole-v1 loop, {steps} vector steps"
+                loop += " + value_fn" if with_values else ""
+                samples = interleaved(
+                    variants,
                     ns.repeats,
-                    lambda c=client, v=with_values: vector_loop(c, n, steps, v),  # type: ignore[misc]
+                    lambda v, w=with_values: vector_loop(backends[v], n, steps, w),  # type: ignore[misc]
+                    "loop",
                 )
-                name = f"shaped{' + value_fn' if with_values else ''} ({label})"
-                rows.append((loop, name, secs, n * steps / secs))
-
+                tables.append((loop, steps, samples, n * steps))
+                load.append(os.getloadavg())
         if not ns.no_sb3:
             k, ts = ns.a2c_envs, ns.a2c_timesteps
-            a2c = f"SB3 A2C learn({ts}), {k} envs"
-            a2c_base, _ = median_of(ns.repeats, lambda: a2c_run(None, k, ts))
-            rows.append((a2c, "plain", a2c_base, ts / a2c_base))
-            for label, client in servers.items():
-                secs, _ = median_of(ns.repeats, lambda c=client: a2c_run(c, k, ts))  # type: ignore[misc]
-                rows.append((a2c, f"ShapedVecEnv + bind_model ({label})", secs, ts / secs))
+            samples = interleaved(
+                variants, ns.repeats, lambda v: a2c_run(backends[v], k, ts), "a2c"
+            )
+            tables.append((f"SB3 A2C learn({ts}), {k} envs", ts // k, samples, ts))
+            load.append(os.getloadavg())
 
     print(
-        f"\nmachine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
-        f"{platform.python_version()}; median of {ns.repeats} runs (after 1 warm-up)\n"
+        f"\n{started}; {platform.machine()}, {os.cpu_count()} CPUs, Python "
+        f"{platform.python_version()}; {ns.repeats} interleaved repeats after 1 warm-up; "
+        f"load average (1 min) {min(x[0] for x in load):.1f}-{max(x[0] for x in load):.1f}\n"
     )
-    print("| workload | variant | median time (s) | env steps/s | overhead per vector step |")
-    print("|---|---|---:|---:|---:|")
-    baselines: dict[str, tuple[float, int]] = {}
-    for workload, name, secs, rate in rows:
-        vector_steps = steps if "loop" in workload else ns.a2c_timesteps // ns.a2c_envs
-        if name == "plain":
-            baselines[workload] = (secs, vector_steps)
-            extra = "—"
-        else:
-            base_secs, vsteps = baselines[workload]
-            per_step_us = (secs - base_secs) / vsteps * 1e6
-            extra = f"{per_step_us:+.0f} µs ({(secs / base_secs - 1) * 100:+.0f}%)"
-        print(f"| {workload} | {name} | {secs:.3f} | {rate:,.0f} | {extra} |")
+    print(
+        "| workload | variant | median time (s) | env steps/s | overhead (median of "
+        "per-repeat ratios) | per vector step |"
+    )
+    print("|---|---|---:|---:|---:|---:|")
+    for workload, vector_steps, samples, env_steps in tables:
+        base = samples["plain"]
+        base_med = statistics.median(base)
+        for name in variants:
+            runs = samples[name]
+            med = statistics.median(runs)
+            if name == "plain":
+                over = per_step = "—"
+            else:
+                ratio = statistics.median(s / b - 1 for s, b in zip(runs, base, strict=True))
+                over = f"{ratio * 100:+.1f}%"
+                per_step = f"{(med - base_med) / vector_steps * 1e6:+.0f} µs"
+            print(
+                f"| {workload} | {LABELS[name]} | {med:.3f} | {env_steps / med:,.0f} "
+                f"| {over} | {per_step} |"
+            )
 
 
 if __name__ == "__main__":
