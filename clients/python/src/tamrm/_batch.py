@@ -1,19 +1,19 @@
-"""Validation of a session step's arrays and their conversion to a columnar ``StepBatch``.
+"""Checks of a session step's arguments, and the conversion of a trajectory to a message.
 
-Everything here runs before a request is sent: a wrong shape or dtype raises a
-``ValueError``/``TypeError`` naming the argument and nothing reaches the server. A
-non-finite number (a NaN from a diverging critic), or one too large for the 32-bit float
-it is sent as (values, Q-values, action vectors), raises :class:`tamrm.InvalidArgument`
-naming the argument, the row and the value as the caller gave it; nothing is sent, so the
-session stays usable (SPEC §8: the server would reject the batch anyway, but its status
-ends the stream). The server's other value checks (scores on entries that do not end an
-episode when given as a mapping) are left to it.
+:class:`tamrm.Session` calls the ``checked_*`` helpers for any argument that is not
+already a numpy array of the canonical dtype and shape: a wrong shape or dtype raises a
+``ValueError``/``TypeError`` naming the argument, before anything is sent. A continuous
+action that is not finite, or too large for the 32-bit float it is sent as, raises
+:class:`tamrm.InvalidArgument` naming the row and the value as the caller gave it; the
+other per-entry checks (finiteness of rewards, values and scores) are made by the native
+extension with the same messages. Either way nothing is sent and the session stays usable
+(SPEC §8). :func:`prepare_trajectory` builds the ``Trajectory`` of ``add_trajectory``;
+:func:`abandon_ids` checks the argument of :meth:`tamrm.Session.abandon`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,53 +24,16 @@ from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import TaskConfig
 
 __all__ = [
-    "PreparedBatch",
-    "StepInput",
     "abandon_ids",
     "checked_actions",
     "checked_env_ids",
     "checked_flags",
     "checked_real",
     "checked_scores",
-    "prepare_batch",
     "prepare_trajectory",
 ]
 
 _UINT32_MAX = 2**32 - 1
-
-
-@dataclass(frozen=True)
-class StepInput:
-    """The arguments of one :meth:`tamrm.Session.step`, as the caller gave them."""
-
-    actions: npt.ArrayLike
-    rewards: npt.ArrayLike
-    terminated: npt.ArrayLike | None = None
-    truncated: npt.ArrayLike | None = None
-    values: npt.ArrayLike | None = None
-    next_values: npt.ArrayLike | None = None
-    q_values: npt.ArrayLike | None = None
-    next_q_values: npt.ArrayLike | None = None
-    episode_scores: npt.ArrayLike | Mapping[int, float] | None = None
-    env_ids: npt.ArrayLike | None = None
-
-
-@dataclass(frozen=True)
-class PreparedBatch:
-    """A validated step: the request to send and what the session needs to track."""
-
-    request: pb.ShapeRequest
-    env_ids: npt.NDArray[np.int64]
-    done: npt.NDArray[np.bool_]
-    #: The rows' actions (``(B,)`` integers or ``(B, action_dim)`` floats as sent) and
-    #: environment rewards, kept by the session to resume its episodes (SPEC §9).
-    actions: npt.NDArray[Any]
-    rewards: npt.NDArray[np.float64]
-
-    @property
-    def size(self) -> int:
-        """Number of entries B."""
-        return int(self.env_ids.shape[0])
 
 
 def _array(name: str, value: object) -> npt.NDArray[Any]:
@@ -164,18 +127,6 @@ def checked_actions(config: TaskConfig, value: object, size: int) -> npt.NDArray
     return arr.astype(np.int64, copy=False)
 
 
-def _add_actions(
-    batch: pb.StepBatch, config: TaskConfig, value: object, size: int
-) -> npt.NDArray[Any]:
-    """Check the actions, write them to ``actions``/``action_vectors``; return them as sent."""
-    arr = checked_actions(config, value, size)
-    if config.discrete:
-        batch.actions.extend(arr.tolist())
-    else:
-        batch.action_vectors.extend(arr.ravel().tolist())
-    return arr
-
-
 def checked_env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | None:
     """The ``env_ids`` argument as ``int64``, or ``None`` for "row i is env i"."""
     if value is None:
@@ -189,34 +140,6 @@ def checked_env_ids(value: object, num_envs: int) -> npt.NDArray[np.int64] | Non
     if ids.size and (int(ids.min()) < 0 or int(ids.max()) >= num_envs):
         raise ValueError(f"env_ids must be in 0..{num_envs - 1}")
     return ids
-
-
-def _add_values(batch: pb.StepBatch, config: TaskConfig, step: StepInput, size: int) -> None:
-    """Check the (optional) state values or Q-values and write them to the batch."""
-    if (step.values is None) != (step.next_values is None):
-        raise TypeError("values and next_values must be given together")
-    if (step.q_values is None) != (step.next_q_values is None):
-        raise TypeError("q_values and next_q_values must be given together")
-    if step.values is not None and step.q_values is not None:
-        raise TypeError("give either values/next_values or q_values/next_q_values, not both")
-    columns: list[tuple[str, object, Any, tuple[int, ...]]] = []
-    if step.values is not None:
-        columns += [
-            ("values", step.values, batch.values, (size,)),
-            ("next_values", step.next_values, batch.next_values, (size,)),
-        ]
-    if step.q_values is not None:
-        if not config.discrete:
-            raise ValueError("q_values are only accepted by discrete tasks (num_actions > 0)")
-        shape: tuple[int, ...] = (size, config.num_actions)
-        columns += [
-            ("q_values", step.q_values, batch.q_values, shape),
-            ("next_q_values", step.next_q_values, batch.next_q_values, shape),
-        ]
-    for name, value, field, shape in columns:
-        arr = checked_real(name, value, shape)
-        _finite(name, arr, float32=True)
-        field.extend(arr.ravel().tolist())
 
 
 def checked_scores(
@@ -236,50 +159,6 @@ def checked_scores(
             raise ValueError(f"episode_scores key {key} is not a row index < {size}")
         scores[int(key)] = float(score)
     return scores
-
-
-def prepare_batch(config: TaskConfig, num_envs: int, step: StepInput) -> PreparedBatch:
-    """Validate one step's arrays and build its ``ShapeRequest``.
-
-    See :meth:`tamrm.Session.step` for the meaning of the arguments.
-
-    Raises:
-        TypeError: An argument has the wrong dtype, or only one of a pair was given.
-        ValueError: An argument has the wrong shape or an out-of-range entry.
-        InvalidArgument: A number is not finite or does not fit its 32-bit field.
-    """
-    given_ids = checked_env_ids(step.env_ids, num_envs)
-    ids = np.arange(num_envs, dtype=np.int64) if given_ids is None else given_ids
-    size = int(ids.shape[0])
-
-    rew = checked_real("rewards", step.rewards, (size,))
-    _finite("rewards", rew, float32=False)
-    term = checked_flags("terminated", step.terminated, size)
-    trunc = checked_flags("truncated", step.truncated, size)
-    done = term | trunc
-
-    batch = pb.StepBatch(
-        env_ids=[] if given_ids is None else given_ids.tolist(), rewards=rew.tolist()
-    )
-    if step.terminated is not None and term.any():
-        batch.terminated.extend(term.tolist())
-    if step.truncated is not None and trunc.any():
-        batch.truncated.extend(trunc.tolist())
-    actions = _add_actions(batch, config, step.actions, size)
-    _add_values(batch, config, step, size)
-    if step.episode_scores is not None:
-        scores = checked_scores(step.episode_scores, done)
-        _finite("episode_scores", np.array(list(scores.values())), False, list(scores))
-        for key, score in scores.items():
-            batch.episode_scores[key] = score
-
-    return PreparedBatch(
-        request=pb.ShapeRequest(steps=batch),
-        env_ids=ids,
-        done=done,
-        actions=actions,
-        rewards=rew,
-    )
 
 
 def prepare_trajectory(actions: npt.ArrayLike, score: float) -> pb.Trajectory:
