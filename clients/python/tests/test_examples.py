@@ -67,5 +67,6 @@ def test_overhead_benchmark_smoke(server_binary: str) -> None:
         server_binary,
     )
     assert "| workload | variant |" in out
-    assert "ShapedVecEnv + bind_model (--data-dir)" in out
-    assert "shaped + value_fn (in-memory)" in out
+    for variant in ("Engine, in memory", "Engine, data dir", "Client, server in memory"):
+        assert variant in out
+    assert "Client, server --data-dir" in out and "SB3 A2C" in out

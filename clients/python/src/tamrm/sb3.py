@@ -92,6 +92,8 @@ class ModelValueFn:
             )
         self.model = model
         self._no_grad = torch.no_grad
+        self._tensors: tuple[Any, tuple[Any, ...], tuple[int, ...]] | None
+        self._tensors = None
 
     def __call__(self, obs: ObsBatch) -> npt.NDArray[np.float64]:
         """Q(s, ·) ``(B, num_actions)`` with a Q-network, else V(s) ``(B,)``."""
@@ -109,11 +111,18 @@ class ModelValueFn:
         It is made of the policy's identity, its training mode and the ids and in-place
         version counters of its parameters and buffers: every optimizer step (and
         ``set_parameters`` / ``load_state_dict``) bumps them. A change made through a
-        tensor's ``.data`` is not seen.
+        tensor's ``.data`` is not seen, nor a submodule replaced inside the same policy
+        object (the list of tensors is taken once per policy object).
         """
         policy = self.model.policy
-        tensors = itertools.chain(policy.parameters(), policy.buffers())
-        return (id(policy), policy.training, *((id(t), t._version) for t in tensors))
+        cached = self._tensors
+        if cached is None or cached[0] is not policy:
+            # Walking the modules is most of the cost: done once per policy object (its
+            # parameters are updated in place; a new policy object is walked again).
+            tensors = tuple(itertools.chain(policy.parameters(), policy.buffers()))
+            cached = self._tensors = (policy, tensors, tuple(id(t) for t in tensors))
+        _, tensors, ids = cached
+        return (id(policy), policy.training, ids, tuple([t._version for t in tensors]))
 
 
 def model_value_fn(model: Any) -> ModelValueFn:
@@ -430,22 +439,33 @@ class ShapedVecEnv(VecEnvWrapper):
             int(np.count_nonzero(result.knn_active)),
             result.pool_version,
         )
-        for i, info in enumerate(infos):
-            if dones[i]:
-                shaped_r, knn_part, potential_part, length = self._episode[i].tolist()
-                info["shaped_episode"] = {
-                    "r": shaped_r,
-                    "knn": knn_part,
-                    "potential": potential_part,
-                    "l": int(length),
-                }
-                self._episode[i] = 0.0
-            info["original_reward"] = float(rewards[i])
-            info["knn_reward"] = float(result.knn_rewards[i])
-            info["potential"] = float(result.potentials[i])
-            info["shaping_step"] = int(result.steps[i])
-            info["knn_active"] = bool(result.knn_active[i])
-            info["pool_version"] = result.pool_version
+        for i in done_rows.tolist():
+            shaped_r, knn_sum, potential_sum, length = self._episode[i].tolist()
+            infos[i]["shaped_episode"] = {
+                "r": shaped_r,
+                "knn": knn_sum,
+                "potential": potential_sum,
+                "l": int(length),
+            }
+            self._episode[i] = 0.0
+        # One conversion per column, not per entry (this loop runs every vector step).
+        columns = zip(
+            infos,
+            np.asarray(rewards, dtype=np.float64).tolist(),
+            result.knn_rewards.tolist(),
+            result.potentials.tolist(),
+            result.steps.tolist(),
+            result.knn_active.tolist(),
+            strict=True,
+        )
+        pool_version = result.pool_version
+        for info, original, knn, potential, t, active in columns:
+            info["original_reward"] = original
+            info["knn_reward"] = knn
+            info["potential"] = potential
+            info["shaping_step"] = t
+            info["knn_active"] = active
+            info["pool_version"] = pool_version
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
 
