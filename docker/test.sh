@@ -1,0 +1,164 @@
+#!/usr/bin/env bash
+# Container test of the tamrm image (issue 11 item 1), with podman:
+#   build tamrm:latest (docker/build.sh), run it with a named volume on a free port, wait
+#   for HEALTHCHECK to pass, create a task and shape episodes through the Python client,
+#   stop and start the container and find the pool and task intact, check that the server
+#   does not run as root and that the image is at most 20 MB, then remove what it made.
+#
+#   bash docker/test.sh
+#
+# Needs podman and runc (installed with apt-get when missing and run as root), the Rust
+# toolchain, and a Python environment with the tamrm client ($TAMRM_VENV, default .venv,
+# as clients/python/scripts/ci.sh makes it). Environment:
+#   TAMRM_STATIC_BIN   pack this static binary instead of building one (docker/build.sh)
+#   TAMRM_IMAGE        image tag to build and test (default tamrm:latest)
+#   TAMRM_MAX_IMAGE_MB size limit (default 20, in 10^6 bytes)
+# In sandboxes where crun and rootless networking fail, the container runs with
+# `--runtime runc --network host` and a containers.conf with `default_ulimits = []`
+# (written to a temporary file unless CONTAINERS_CONF is set); both also work elsewhere.
+# Without systemd, podman logs errors about health-check timers on run/start/stop; those go
+# to a file (printed on failure): the test runs the checks itself.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+start=$(date +%s)
+say() { echo "docker/test.sh: $* ($(( $(date +%s) - start ))s)" >&2; }
+fail() { say "FAIL: $*"; exit 1; }
+
+image="${TAMRM_IMAGE:-tamrm:latest}"
+max_mb="${TAMRM_MAX_IMAGE_MB:-20}"
+venv="${TAMRM_VENV:-.venv}"
+py="$venv/bin/python"
+[[ -x "$py" ]] || fail "no Python at $py (run clients/python/scripts/ci.sh, or set TAMRM_VENV)"
+"$py" -c "import tamrm" || fail "$py cannot import tamrm"
+
+if ! command -v podman >/dev/null || ! command -v runc >/dev/null; then
+    [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null \
+        || fail "podman and runc are needed (apt-get install -y podman runc)"
+    say "installing podman and runc"
+    apt-get update -qq >/dev/null
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq podman runc >/dev/null
+fi
+
+work=$(mktemp -d)
+name="tamrm-test-$$"
+vol="tamrm-test-$$"
+cleanup() {
+    local rc=$?
+    if [[ $rc -ne 0 ]] && podman container exists "$name" 2>/dev/null; then
+        echo "--- container log" >&2
+        podman logs "$name" 2>&1 | tail -n 40 >&2 || true
+        echo "--- podman's stderr" >&2
+        tail -n 20 "$work/podman.err" >&2 || true
+    fi
+    podman rm -f -t 0 "$name" >/dev/null 2>&1 || true
+    podman volume rm -f "$vol" >/dev/null 2>&1 || true
+    rm -rf "$work"
+    exit $rc
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+if [[ -z "${CONTAINERS_CONF:-}" ]]; then
+    printf '[containers]\ndefault_ulimits = []\n' >"$work/containers.conf"
+    export CONTAINERS_CONF="$work/containers.conf"
+fi
+
+say "building $image"
+TAMRM_ENGINE=podman bash docker/build.sh "$image"
+
+say "checking the image"
+size=$(podman image inspect --format '{{.Size}}' "$image")
+say "image size: $size bytes ($(( size / 1000000 )) MB; limit $max_mb MB)"
+(( size <= max_mb * 1000000 )) || fail "image is $size bytes, over $max_mb MB"
+user=$(podman image inspect --format '{{.Config.User}}' "$image")
+[[ -n "$user" && "${user%%:*}" != 0 && "${user%%:*}" != root ]] || fail "image user is '$user'"
+hc=$(podman image inspect --format '{{json .Config.Healthcheck}}' "$image")
+[[ "$hc" == *'"/tamrm","healthcheck"'* ]] || fail "image has no HEALTHCHECK /tamrm healthcheck: $hc"
+
+port=$("$py" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+podman volume create "$vol" >/dev/null
+run() {
+    # The hardening of docker/compose.yaml: read-only root, no capabilities.
+    podman run -d --runtime runc --network host --name "$name" -v "$vol:/data" \
+        --read-only --cap-drop ALL --security-opt no-new-privileges \
+        -e TAMRM_LISTEN="127.0.0.1:$port" "$image" >/dev/null 2>>"$work/podman.err"
+}
+wait_healthy() {
+    # `podman healthcheck run` runs the image's HEALTHCHECK in the container now (the
+    # periodic checks need systemd timers, which a CI container may not have).
+    for _ in $(seq 1 60); do
+        [[ $(podman inspect --format '{{.State.Running}}' "$name") == true ]] \
+            || fail "the container stopped"
+        if podman healthcheck run "$name" >/dev/null 2>&1; then
+            say "healthy on 127.0.0.1:$port"
+            return
+        fi
+        sleep 0.5
+    done
+    fail "not healthy after 30 s"
+}
+client() { "$py" - "$port" "$work/pool.json" "$@" <<'PY'
+import json, sys
+import numpy as np
+import tamrm
+
+port, snapshot, mode = sys.argv[1], sys.argv[2], sys.argv[3]
+client = tamrm.Client(f"127.0.0.1:{port}")
+
+def state() -> dict:
+    pool = client.get_pool("docker-test")
+    task = client.get_task("docker-test")
+    return {
+        "pool_version": pool.pool_version,
+        "trajectories": [(t.seq, t.score, t.actions.tolist()) for t in pool.trajectories],
+        "config": repr(task.config),
+    }
+
+if mode == "fill":
+    client.create_task("docker-test", num_actions=3, pool_capacity=8, k=2, start_step=0,
+                       min_pool_size=1)
+    rng = np.random.default_rng(11)
+    with client.session("docker-test", 4) as s:
+        for i in range(60):
+            r = s.step(rng.integers(0, 3, 4), rng.normal(size=4),
+                       terminated=np.full(4, i % 6 == 5),
+                       values=rng.normal(size=4), next_values=rng.normal(size=4))
+            assert np.all(np.isfinite(r.rewards)), r
+    got = state()
+    assert 0 < len(got["trajectories"]) <= 8, got  # 40 episodes ended; capacity 8
+    json.dump(got, open(snapshot, "w"))
+    print(f"shaped 240 steps, pool version {got['pool_version']}, {len(got['trajectories'])} trajectories")
+else:
+    want = json.load(open(snapshot))
+    got = json.loads(json.dumps(state()))
+    assert got == want, f"pool changed across the restart:\n{got}\n!=\n{want}"
+    with client.session("docker-test", 1) as s:  # and it still shapes
+        s.step([1], [0.5], terminated=[True], values=[0.0], next_values=[0.0])
+    print(f"pool intact after the restart (version {got['pool_version']}), shaping goes on")
+client.close()
+PY
+}
+
+say "running $name (volume $vol)"
+run
+wait_healthy
+[[ $(podman inspect --format '{{.State.Health.Status}}' "$name") == healthy ]] \
+    || fail "health status is not healthy"
+client fill
+
+say "checking the server process is not root"
+pid=$(podman inspect --format '{{.State.Pid}}' "$name")
+uid=$(awk '/^Uid:/ { print $2 }' "/proc/$pid/status")
+top=$(podman top "$name" user huser | tail -n +2)
+say "server pid $pid: uid $uid; podman top user/huser: $top"
+[[ "$uid" != 0 ]] || fail "the server runs as root (pid $pid)"
+[[ "$(awk '{ print $1 }' <<<"$top")" != root ]] || fail "podman top says the user is root"
+
+say "stopping and starting $name"
+podman stop -t 35 "$name" >/dev/null 2>>"$work/podman.err"
+[[ $(podman inspect --format '{{.State.ExitCode}}' "$name") == 0 ]] \
+    || fail "the server did not exit 0 on SIGTERM"
+podman start "$name" >/dev/null 2>>"$work/podman.err"
+wait_healthy
+client check
+
+say "ok"
