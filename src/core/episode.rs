@@ -67,27 +67,37 @@ pub struct Episode {
     synced_version: Option<u64>,
     /// Seqs of the trajectories `dis` refers to.
     seqs: Vec<u64>,
-    /// dis_i over the steps taken so far (j < min(t, L_i)).
+    /// Continuous tasks: dis_i over the steps taken so far (j < min(t, L_i)).
     dis: Vec<f64>,
     /// The previous `dis` allocation, reused by the next sync.
     spare: Vec<f64>,
+    /// Discrete tasks: the number of mismatches m_i over the steps taken so far, so
+    /// dis_i = 2·m_i exactly (a sum of 0s and 2s below 2^33 is exact in f64).
+    ms: Vec<u32>,
+    /// The previous `ms` allocation, reused by the next sync.
+    spare_ms: Vec<u32>,
 }
 
-/// Σ_{j<upto} δ(a_j, b_j) of two action sequences, summed in j order (the definition).
-/// For discrete actions each term is 0 or 2, so the sum is exactly 2 × the number of
-/// mismatches (an empty sum stays the empty sum).
+/// Σ_{j<upto} δ(a_j, b_j) of two continuous action sequences, summed in j order (the
+/// definition).
 fn prefix_distance(a: &ActionSeq, b: &ActionSeq, upto: usize) -> f64 {
-    match (a, b) {
-        (ActionSeq::Discrete(x), ActionSeq::Discrete(y)) if upto > 0 => {
-            let mismatches = x[..upto]
-                .iter()
-                .zip(&y[..upto])
-                .filter(|(p, q)| p != q)
-                .count();
-            2.0 * mismatches as f64
-        }
-        _ => (0..upto).map(|j| delta(a.get(j), b.get(j))).sum(),
-    }
+    (0..upto).map(|j| delta(a.get(j), b.get(j))).sum()
+}
+
+/// The number of j < upto where two discrete action sequences differ (δ = 2 there, 0
+/// elsewhere, so the definition's distance is exactly 2 × this count). `upto` is at most
+/// `max_trajectory_len` (a `u32`), so the count fits. A continuous `a` (never in a
+/// discrete task's pool) counts every step as a mismatch.
+fn prefix_mismatches(a: &ActionSeq, b: &[u32], upto: usize) -> u32 {
+    let count = match a {
+        ActionSeq::Discrete(x) => x[..upto]
+            .iter()
+            .zip(&b[..upto])
+            .filter(|(p, q)| p != q)
+            .count(),
+        ActionSeq::Continuous { .. } => upto,
+    };
+    u32::try_from(count).unwrap_or(u32::MAX)
 }
 
 impl Episode {
@@ -101,6 +111,8 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
+            ms: Vec::new(),
+            spare_ms: Vec::new(),
         }
     }
 
@@ -119,6 +131,8 @@ impl Episode {
             seqs: Vec::new(),
             dis: Vec::new(),
             spare: Vec::new(),
+            ms: Vec::new(),
+            spare_ms: Vec::new(),
         }
     }
 
@@ -127,84 +141,52 @@ impl Episode {
         self.t
     }
 
-    /// Brings `dis` in line with the pool's current contents.
+    /// Brings `dis` (or `ms`) in line with the pool's current contents.
     fn sync(&mut self, pool: &Pool) {
         if self.synced_version == Some(pool.version()) {
             return;
         }
-        let mut dis = std::mem::take(&mut self.spare);
-        dis.clear();
-        dis.reserve(pool.len());
-        let mut old = 0;
-        for (traj, &seq) in pool.trajectories().iter().zip(pool.seqs()) {
-            // Both lists are sorted by seq and seqs are never reused: a merge walk.
-            while old < self.seqs.len() && self.seqs[old] < seq {
-                old += 1;
-            }
-            if old < self.seqs.len() && self.seqs[old] == seq {
-                dis.push(self.dis[old]);
-            } else {
-                let upto = (self.t as usize)
-                    .min(traj.actions.len())
-                    .min(self.recorded.len());
-                dis.push(prefix_distance(&traj.actions, &self.recorded, upto));
-            }
+        if let ActionSeq::Discrete(recorded) = &self.recorded {
+            let mut ms = std::mem::take(&mut self.spare_ms);
+            realign(&self.seqs, &self.ms, pool, &mut ms, |traj| {
+                let upto = (self.t as usize).min(traj.len()).min(recorded.len());
+                prefix_mismatches(traj, recorded, upto)
+            });
+            self.spare_ms = std::mem::replace(&mut self.ms, ms);
+        } else {
+            let mut dis = std::mem::take(&mut self.spare);
+            realign(&self.seqs, &self.dis, pool, &mut dis, |traj| {
+                let upto = (self.t as usize).min(traj.len()).min(self.recorded.len());
+                prefix_distance(traj, &self.recorded, upto)
+            });
+            self.spare = std::mem::replace(&mut self.dis, dis);
         }
         self.seqs.clear();
         self.seqs.extend_from_slice(pool.seqs());
-        self.spare = std::mem::replace(&mut self.dis, dis);
         self.synced_version = Some(pool.version());
     }
 
-    /// The distance update of step `t` for a discrete action against a discrete pool;
-    /// `false` (nothing done) otherwise. With the pool laid out by step, one contiguous
-    /// row holds every trajectory's action at t; each distance gets δ = 2 × mismatch
-    /// (0 or 1, no branch on the comparison), exactly what [`delta`] gives. A trajectory
-    /// shorter than t ([`NO_ACTION`]) gets + 0.0, which leaves its distance (≥ +0.0)
-    /// unchanged. Without the layout, a first pass loads each trajectory's action into a
-    /// mismatch column (so the cache-missing loads overlap) and a second adds.
-    fn discrete_distances(
-        &mut self,
-        pool: &Pool,
-        t: usize,
-        action: ActionRef<'_>,
-        scratch: &mut KnnScratch,
-    ) -> bool {
-        let ActionRef::Discrete(a) = action else {
-            return false;
-        };
+    /// The mismatch update of step `t` for a discrete action. With the pool laid out by
+    /// step, one contiguous row holds every trajectory's action at t; each count gets
+    /// (v ≠ a) ∧ (v ≠ [`NO_ACTION`]) (no branch on the comparison): a trajectory shorter
+    /// than t keeps its count, as its distance gets no term. Without the layout, each
+    /// trajectory's action is read from its own sequence.
+    fn discrete_counts(&mut self, pool: &Pool, t: usize, a: u32) {
         if pool.by_step() {
             if let Some(row) = pool.step_row(t) {
-                for (d, &v) in self.dis.iter_mut().zip(row) {
-                    let m = (v != a) & (v != NO_ACTION);
-                    *d += 2.0 * f64::from(u8::from(m));
+                for (m, &v) in self.ms.iter_mut().zip(row) {
+                    *m += u32::from((v != a) & (v != NO_ACTION));
                 }
             }
-            return true;
+            return;
         }
-        let mismatch = &mut scratch.mismatch;
-        mismatch.clear();
-        let mut all_discrete = true;
-        mismatch.extend(
-            pool.trajectories()
-                .iter()
-                .zip(pool.lens())
-                .map(|(traj, &len)| match &traj.actions {
-                    ActionSeq::Discrete(v) if t < len => i32::from(v[t] != a),
-                    ActionSeq::Discrete(_) => 0,
-                    ActionSeq::Continuous { .. } => {
-                        all_discrete = false;
-                        0
-                    }
-                }),
-        );
-        if !all_discrete {
-            return false;
+        for ((m, traj), &len) in self.ms.iter_mut().zip(pool.trajectories()).zip(pool.lens()) {
+            *m += match &traj.actions {
+                ActionSeq::Discrete(v) if t < len => u32::from(v[t] != a),
+                ActionSeq::Discrete(_) => 0,
+                ActionSeq::Continuous { .. } => u32::from(t < len),
+            };
         }
-        for (d, &m) in self.dis.iter_mut().zip(mismatch.iter()) {
-            *d += 2.0 * f64::from(m);
-        }
-        true
     }
 
     /// Shapes one step against `pool` as it is now, and returns the finished episode if
@@ -218,8 +200,15 @@ impl Episode {
     ) -> (StepOutput, Option<EpisodeEnd>) {
         self.sync(pool);
         let t = self.t as usize;
-        let discrete = self.discrete_distances(pool, t, input.action, scratch);
-        if !discrete {
+        let discrete = matches!(self.recorded, ActionSeq::Discrete(_));
+        if discrete {
+            match input.action {
+                ActionRef::Discrete(a) => self.discrete_counts(pool, t, a),
+                ActionRef::Continuous(_) => {
+                    debug_assert!(false, "a continuous action in a discrete episode");
+                }
+            }
+        } else {
             for ((d, traj), &len) in self
                 .dis
                 .iter_mut()
@@ -243,18 +232,11 @@ impl Episode {
         let knn_reward = if active {
             let k = cfg.k as usize;
             let f = if discrete {
-                knn_f_discrete(
-                    &self.dis,
-                    pool.xs(),
-                    pool.places(),
-                    pool.by_place(),
-                    k,
-                    scratch,
-                )
+                knn_f_discrete(&self.ms, pool.xs(), pool.by_place(), k, scratch)
             } else {
-                None
+                knn_f(&self.dis, pool.xs(), pool.seqs(), k, scratch)
             };
-            reward_from_f(f.unwrap_or_else(|| knn_f(&self.dis, pool.xs(), pool.seqs(), k, scratch)))
+            reward_from_f(f)
         } else {
             0.0
         };
@@ -281,10 +263,36 @@ impl Episode {
             self.reward_sum = 0.0;
             // Every distance of the empty prefix is 0; the seqs stay valid.
             self.dis.iter_mut().for_each(|d| *d = 0.0);
+            self.ms.iter_mut().for_each(|m| *m = 0);
             Some(EpisodeEnd { actions, score })
         } else {
             None
         };
         (output, end)
+    }
+}
+
+/// Fills `out` with one value per trajectory of `pool`: the one kept in `old` (aligned
+/// with `old_seqs`) for trajectories still there, `fresh(actions)` for new ones.
+fn realign<T: Copy>(
+    old_seqs: &[u64],
+    old: &[T],
+    pool: &Pool,
+    out: &mut Vec<T>,
+    mut fresh: impl FnMut(&ActionSeq) -> T,
+) {
+    out.clear();
+    out.reserve(pool.len());
+    let mut j = 0;
+    for (traj, &seq) in pool.trajectories().iter().zip(pool.seqs()) {
+        // Both lists are sorted by seq and seqs are never reused: a merge walk.
+        while j < old_seqs.len() && old_seqs[j] < seq {
+            j += 1;
+        }
+        if j < old_seqs.len() && old_seqs[j] == seq {
+            out.push(old[j]);
+        } else {
+            out.push(fresh(&traj.actions));
+        }
     }
 }

@@ -23,17 +23,12 @@ pub struct KnnScratch {
     /// Per entry: `u64::MAX` minus its place in the order (x descending, seq ascending).
     rank: Vec<u64>,
     idx: Vec<usize>,
-    /// [`knn_f_discrete`]: per entry, d / 2.
-    ms: Vec<u32>,
     /// [`knn_f_discrete`]: a copy of `ms` for the selection.
     sel_m: Vec<u32>,
     /// [`knn_f_discrete`]: entries per m − min m.
     hist: Hist,
     /// [`knn_f_discrete`]: `inv[m]` = 1 / (2m), as `1.0 / d` computes it.
     inv: Vec<f64>,
-    /// Per trajectory: whether its action at the current step differs (0 or 1), for the
-    /// distance update of discrete episodes.
-    pub(crate) mismatch: Vec<i32>,
 }
 
 /// The counting buffer of [`knn_f_discrete`]: ranges of m up to its length are counted.
@@ -148,50 +143,37 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
         .sum()
 }
 
-/// [`knn_f`] for distances that are all even integers below 2^33 (discrete actions: 2 ×
-/// the number of mismatches), `places` the entries' places in the order x descending,
-/// then seq ascending ([`crate::core::Pool`] keeps them). `None` if some distance is not
-/// such an integer (or k = 0); else exactly `knn_f`'s value, bit for bit.
+/// [`knn_f`] for discrete distances dis_i = 2·`ms[i]` (`ms` the mismatch counts), with
+/// `by_place` the entries in the order x descending, then seq ascending
+/// ([`crate::core::Pool`] keeps it): exactly `knn_f(2·ms, xs, seqs, k)`, bit for bit.
 ///
 /// Why the same K: for distinct even integers d < d' < 2^33, 1/d and 1/d' differ by a
 /// factor ≥ 1 + 2^-32, far above rounding, so P = (1/d)/Σ orders entries exactly as d
 /// does, and equal d give equal P. With exact matches, P is `share` for d = 0 and 0
 /// otherwise: ordering by d picks the same d = 0 entries (ties by place), and the P = 0
 /// entries of K add +0.0 whichever they are. So K is the first `k` entries by
-/// (d ascending, place ascending): every entry below the k-th smallest m = d/2, found by
-/// counting over the (small) range of m, plus the first of those at it in place order
-/// (`by_place`, the inverse of `places`). 1/d comes from a table; the sum over K in pool
-/// order is the one `knn_f` computes.
+/// (m ascending, place ascending): every entry below the k-th smallest m, found by
+/// counting over the (small) range of m, plus the first of those at it in place order.
+/// 1/d comes from a table (the bits of `1.0 / d`); the total sums the same terms in the
+/// same order as `knn_f`. Only the members of K are divided by it: an entry outside K adds
+/// (x·P)·0, which is x·0 for every finite P > 0 or P = +0.0 (same sign), so the sum over
+/// the pool is `knn_f`'s term for term.
 pub(crate) fn knn_f_discrete(
-    dis: &[f64],
+    ms: &[u32],
     xs: &[f64],
-    places: &[u32],
     by_place: &[u32],
     k: usize,
     scratch: &mut KnnScratch,
-) -> Option<f64> {
-    let n = dis.len();
-    debug_assert!(n > 0 && xs.len() == n && places.len() == n && by_place.len() == n);
-    let ms = &mut scratch.ms;
-    ms.clear();
-    let mut valid = true;
-    let (mut min_m, mut max_m) = (u32::MAX, 0u32);
-    ms.extend(dis.iter().map(|&d| {
-        let m = (d * 0.5) as u32;
-        valid &= 2.0 * f64::from(m) == d;
-        min_m = min_m.min(m);
-        max_m = max_m.max(m);
-        m
-    }));
-    if !valid || k == 0 {
-        return None;
-    }
-    let p = &mut scratch.p;
-    p.clear();
-    if min_m == 0 {
+) -> f64 {
+    let n = ms.len();
+    debug_assert!(n > 0 && xs.len() == n && by_place.len() == n && k > 0);
+    let (min_m, max_m) = ms
+        .iter()
+        .fold((u32::MAX, 0u32), |(lo, hi), &m| (lo.min(m), hi.max(m)));
+    // P_i = num(m_i) / den: share = 1/exact for m = 0 with exact matches, else 1/d / Σ.
+    let (den, share) = if min_m == 0 {
         let exact = ms.iter().filter(|&&m| m == 0).count();
-        let share = 1.0 / exact as f64;
-        p.extend(ms.iter().map(|&m| if m == 0 { share } else { 0.0 }));
+        (1.0, 1.0 / exact as f64)
     } else {
         let inv = &mut scratch.inv;
         let need = max_m as usize + 1;
@@ -199,12 +181,23 @@ pub(crate) fn knn_f_discrete(
             let from = inv.len();
             inv.extend((from..need).map(|m| 1.0 / (2.0 * m as f64)));
         }
-        p.extend(ms.iter().map(|&m| inv[m as usize]));
-        let total: f64 = p.iter().sum();
-        p.iter_mut().for_each(|q| *q /= total);
-    }
+        let total: f64 = ms.iter().map(|&m| inv[m as usize]).sum();
+        (total, 0.0)
+    };
+    let inv = &scratch.inv;
+    let p_of = |m: u32| -> f64 {
+        if min_m == 0 {
+            if m == 0 {
+                share
+            } else {
+                0.0
+            }
+        } else {
+            inv[m as usize] / den
+        }
+    };
     if k >= n {
-        return Some(p.iter().zip(xs).map(|(&pi, &xi)| xi * pi).sum());
+        return ms.iter().zip(xs).map(|(&m, &xi)| xi * p_of(m)).sum();
     }
     // The k-th smallest m (m*), and how many entries lie below it: by counting when the
     // range of m is small (distances of one episode move together), else by selection.
@@ -212,7 +205,7 @@ pub(crate) fn knn_f_discrete(
     let (threshold, below) = if range <= scratch.hist.len() {
         let hist = &mut scratch.hist[..range];
         hist.fill(0);
-        for &m in ms.iter() {
+        for &m in ms {
             hist[(m - min_m) as usize] += 1;
         }
         let mut below = 0usize;
@@ -243,13 +236,19 @@ pub(crate) fn knn_f_discrete(
             need -= 1;
         }
     }
-    Some(
-        p.iter()
-            .zip(xs)
-            .zip(pick.iter())
-            .map(|((&pi, &xi), &m)| (xi * pi) * f64::from(m))
-            .sum(),
-    )
+    ms.iter()
+        .zip(xs)
+        .zip(pick.iter())
+        .map(
+            |((&m, &xi), &picked)| {
+                if picked != 0 {
+                    xi * p_of(m)
+                } else {
+                    xi * 0.0
+                }
+            },
+        )
+        .sum()
 }
 
 #[cfg(test)]
@@ -329,7 +328,7 @@ mod tests {
         for round in 0..3000 {
             let n = 1 + next(40) as usize;
             let spread = [3, 50, 200, 3000][round % 4];
-            let mut dis: Vec<f64> = (0..n).map(|_| 2.0 * next(spread) as f64).collect();
+            let mut ms: Vec<u32> = (0..n).map(|_| next(spread) as u32).collect();
             let xs: Vec<f64> = (0..n).map(|_| next(4) as f64 / 3.0).collect();
             let mut seqs: Vec<u64> = (0..n).map(|_| next(1000)).collect();
             seqs.sort_unstable();
@@ -338,25 +337,17 @@ mod tests {
             let mut idx: Vec<usize> = (0..n).collect();
             idx.sort_by(|&a, &b| xs[b].total_cmp(&xs[a]).then(seqs[a].cmp(&seqs[b])));
             let by_place: Vec<u32> = idx.iter().map(|&i| i as u32).collect();
-            let mut places = vec![0u32; n];
-            for (place, &i) in idx.iter().enumerate() {
-                places[i] = place as u32;
-            }
             // A few steps of one episode: distances move by 0 or 2, the order is kept.
             for _ in 0..4 {
                 for k in [1, n / 2 + 1, n.saturating_sub(1).max(1), n] {
-                    let got =
-                        knn_f_discrete(&dis[..n], &xs[..n], &places, &by_place, k, &mut scratch);
-                    let want = knn_f_by_sort(&dis[..n], &xs[..n], &seqs, k);
-                    assert_eq!(got.map(f64::to_bits), Some(want.to_bits()), "n {n} k {k}");
+                    let got = knn_f_discrete(&ms[..n], &xs[..n], &by_place, k, &mut scratch);
+                    let dis: Vec<f64> = ms[..n].iter().map(|&m| 2.0 * f64::from(m)).collect();
+                    let want = knn_f_by_sort(&dis, &xs[..n], &seqs, k);
+                    assert_eq!(got.to_bits(), want.to_bits(), "n {n} k {k}");
                 }
-                dis.iter_mut().for_each(|d| *d += 2.0 * next(2) as f64);
+                ms.iter_mut().for_each(|m| *m += next(2) as u32);
             }
         }
-        assert_eq!(
-            knn_f_discrete(&[1.0], &[1.0], &[0], &[0], 1, &mut scratch),
-            None
-        );
     }
 
     #[test]

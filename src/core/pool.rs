@@ -44,10 +44,8 @@ pub struct Pool {
     lens: Vec<usize>,
     xs: Vec<f64>,
     l_min: usize,
-    /// Per trajectory: its place in the order x descending, then seq ascending (the order
-    /// that breaks ties in P), so that a step need not sort by it.
-    places: Vec<u32>,
-    /// The trajectories (indices) in that order: the inverse of `places`.
+    /// The trajectories (indices) in the order x descending, then seq ascending (the
+    /// order that breaks ties in P), so that a step need not sort by it.
     by_place: Vec<u32>,
     /// For a discrete pool, the actions laid out by step: row t holds every trajectory's
     /// action at t (in pool order), [`NO_ACTION`] where t ≥ L_i; `step_rows` rows. Empty
@@ -72,7 +70,6 @@ impl Pool {
             lens: Vec::new(),
             xs: Vec::new(),
             l_min: 0,
-            places: Vec::new(),
             by_place: Vec::new(),
             by_step: Arc::from(Vec::new()),
             step_rows: 0,
@@ -147,10 +144,6 @@ impl Pool {
                 .total_cmp(&self.xs[a])
                 .then_with(|| self.seqs[a].cmp(&self.seqs[b]))
         });
-        self.places = vec![0; idx.len()];
-        for (place, &i) in idx.iter().enumerate() {
-            self.places[i] = place as u32;
-        }
         self.by_place = idx.iter().map(|&i| i as u32).collect();
         self.build_by_step();
     }
@@ -271,11 +264,7 @@ impl Pool {
     pub fn xs(&self) -> &[f64] {
         &self.xs
     }
-    /// Per trajectory, its place in the order x descending, then seq ascending.
-    pub(crate) fn places(&self) -> &[u32] {
-        &self.places
-    }
-    /// The trajectories (indices) by place: the inverse of [`Pool::places`].
+    /// The trajectories (indices) in the order x descending, then seq ascending.
     pub(crate) fn by_place(&self) -> &[u32] {
         &self.by_place
     }
