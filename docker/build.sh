@@ -10,6 +10,7 @@
 #   TAMRM_ENGINE      podman | docker (default: podman if `podman info` works, else docker
 #                     if `docker info` reaches a daemon)
 #   TAMRM_STATIC_BIN  use this prebuilt static binary instead of running cargo
+#   TAMRM_BINARY_ONLY=1  only build and check the binary, print its path, build no image
 #   CARGO_TARGET_DIR  as for cargo (default: ./target)
 # With a registry, `docker build -f docker/Dockerfile .` builds the same image from source
 # in the official Rust image (docs/deployment.md).
@@ -26,7 +27,7 @@ pick_engine() {
     echo "build.sh: neither podman nor a docker daemon works (apt-get install -y podman runc)" >&2
     return 1
 }
-engine=$(pick_engine)
+[[ "${TAMRM_BINARY_ONLY:-}" == 1 ]] || engine=$(pick_engine)
 
 if [[ -n "${TAMRM_STATIC_BIN:-}" ]]; then
     bin="$TAMRM_STATIC_BIN"
@@ -43,6 +44,7 @@ if LC_ALL=C readelf -l "$bin" 2>/dev/null | grep -q "Requesting program interpre
     echo "build.sh: $bin is dynamically linked; build it with RUSTFLAGS=\"-C target-feature=+crt-static\"" >&2
     exit 1
 fi
+if [[ "${TAMRM_BINARY_ONLY:-}" == 1 ]]; then realpath "$bin"; exit 0; fi
 
 ctx=$(mktemp -d)
 trap 'rm -rf "$ctx"' EXIT

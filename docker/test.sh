@@ -31,14 +31,6 @@ py="$venv/bin/python"
 [[ -x "$py" ]] || fail "no Python at $py (run clients/python/scripts/ci.sh, or set TAMRM_VENV)"
 "$py" -c "import tamrm" || fail "$py cannot import tamrm"
 
-if ! command -v podman >/dev/null || ! command -v runc >/dev/null; then
-    [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null \
-        || fail "podman and runc are needed (apt-get install -y podman runc)"
-    say "installing podman and runc"
-    apt-get update -qq >/dev/null
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq podman runc >/dev/null
-fi
-
 work=$(mktemp -d)
 name="tamrm-test-$$"
 vol="tamrm-test-$$"
@@ -62,8 +54,24 @@ if [[ -z "${CONTAINERS_CONF:-}" ]]; then
     export CONTAINERS_CONF="$work/containers.conf"
 fi
 
+# podman is installed (when missing) while cargo builds the static binary.
+installer=
+if ! command -v podman >/dev/null || ! command -v runc >/dev/null; then
+    [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null \
+        || fail "podman and runc are needed (apt-get install -y podman runc)"
+    say "installing podman and runc (in the background, log in $work/apt.log)"
+    { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q podman runc; } \
+        >"$work/apt.log" 2>&1 &
+    installer=$!
+fi
+say "building the static binary"
+bin=$(TAMRM_BINARY_ONLY=1 bash docker/build.sh)
+if [[ -n "$installer" ]]; then
+    wait "$installer" || { tail -n 20 "$work/apt.log" >&2; fail "apt-get install podman runc failed"; }
+    say "podman installed"
+fi
 say "building $image"
-TAMRM_ENGINE=podman bash docker/build.sh "$image"
+TAMRM_STATIC_BIN="$bin" TAMRM_ENGINE=podman bash docker/build.sh "$image"
 
 say "checking the image"
 size=$(podman image inspect --format '{{.Size}}' "$image")
