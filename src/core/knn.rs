@@ -155,9 +155,10 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
 /// (m ascending, place ascending): every entry below the k-th smallest m, found by
 /// counting over the (small) range of m, plus the first of those at it in place order.
 /// 1/d comes from a table (the bits of `1.0 / d`); the total sums the same terms in the
-/// same order as `knn_f`. Only the members of K are divided by it: an entry outside K adds
-/// (x·P)·0, which is x·0 for every finite P > 0 or P = +0.0 (same sign), so the sum over
-/// the pool is `knn_f`'s term for term.
+/// same order as `knn_f`. An entry outside K adds (x·P)·0 in `knn_f`, which is x·0 for
+/// every finite P ≥ +0.0 (same sign); here it adds x·(+0.0/Σ) = x·0, selected by a mask
+/// rather than a branch (membership is unpredictable), so the sum over the pool is
+/// `knn_f`'s term for term.
 pub(crate) fn knn_f_discrete(
     ms: &[u32],
     xs: &[f64],
@@ -185,19 +186,20 @@ pub(crate) fn knn_f_discrete(
         (total, 0.0)
     };
     let inv = &scratch.inv;
-    let p_of = |m: u32| -> f64 {
+    // The numerator of P for a count (`bits` of it, & a mask below): no branch per entry.
+    let num = |m: u32| -> u64 {
         if min_m == 0 {
-            if m == 0 {
-                share
-            } else {
-                0.0
-            }
+            share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0))
         } else {
-            inv[m as usize] / den
+            inv[m as usize].to_bits()
         }
     };
     if k >= n {
-        return ms.iter().zip(xs).map(|(&m, &xi)| xi * p_of(m)).sum();
+        return ms
+            .iter()
+            .zip(xs)
+            .map(|(&m, &xi)| xi * (f64::from_bits(num(m)) / den))
+            .sum();
     }
     // The k-th smallest m (m*), and how many entries lie below it: by counting when the
     // range of m is small (distances of one episode move together), else by selection.
@@ -225,29 +227,22 @@ pub(crate) fn knn_f_discrete(
     let pick = &mut scratch.pick;
     pick.clear();
     pick.extend(ms.iter().map(|&m| i32::from(m < threshold)));
-    // Of the entries at m*, the k − below first in place order.
+    // Of the entries at m*, the k − below first in place order (no branch on m).
     let mut need = k - below;
     for &i in by_place {
-        if need == 0 {
-            break;
-        }
-        if ms[i as usize] == threshold {
-            pick[i as usize] = 1;
-            need -= 1;
-        }
+        let i = i as usize;
+        let take = (ms[i] == threshold) & (need > 0);
+        pick[i] |= i32::from(take);
+        need -= usize::from(take);
     }
+    // An entry outside K gets numerator +0.0, so x·(0/Σ) = x·0: no branch on membership.
     ms.iter()
         .zip(xs)
         .zip(pick.iter())
-        .map(
-            |((&m, &xi), &picked)| {
-                if picked != 0 {
-                    xi * p_of(m)
-                } else {
-                    xi * 0.0
-                }
-            },
-        )
+        .map(|((&m, &xi), &picked)| {
+            let mask = 0u64.wrapping_sub(u64::from(picked != 0));
+            xi * (f64::from_bits(num(m) & mask) / den)
+        })
         .sum()
 }
 
