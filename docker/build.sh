@@ -54,6 +54,7 @@ mkdir "$ctx/data"
 
 echo "build.sh: $engine build -> $image" >&2
 args=(--build-arg TAMRM_BIN_STAGE=prebuilt -t "$image")
+old=$("$engine" image inspect --format '{{.Id}}' "$image" 2>/dev/null || true)
 case "$engine" in
     # --format docker keeps HEALTHCHECK (the OCI image format has no field for it).
     podman) podman build --format docker -f docker/Dockerfile "${args[@]}" "$ctx" ;;
@@ -61,5 +62,9 @@ case "$engine" in
     docker) DOCKER_BUILDKIT=1 docker build -f docker/Dockerfile "${args[@]}" "$ctx" ;;
     *) echo "build.sh: unknown engine $engine" >&2; exit 1 ;;
 esac
-"$engine" image inspect --format '{{.Size}}' "$image" \
+# The image this tag named before, if nothing else uses it, is now only garbage (rmi refuses
+# an image with another tag or a container).
+new=$("$engine" image inspect --format '{{.Id}}' "$image")
+if [[ -n "$old" && "$old" != "$new" ]]; then "$engine" rmi "$old" >/dev/null 2>&1 || true; fi
+"$engine" image inspect --format '{{.Size}}' "$new" \
     | awk -v i="$image" '{ printf "build.sh: %s is %.1f MB\n", i, $1 / 1e6 }' >&2
