@@ -23,6 +23,8 @@ pub struct KnnScratch {
     /// Per entry: `u64::MAX` minus its place in the order (x descending, seq ascending).
     rank: Vec<u64>,
     idx: Vec<usize>,
+    /// [`knn_f_discrete`]: the members of K in pool order.
+    members: Vec<u32>,
     /// [`knn_f_discrete`]: a copy of `ms` for the selection.
     sel_m: Vec<u32>,
     /// [`knn_f_discrete`]: entries per m − min m.
@@ -155,10 +157,8 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
 /// (m ascending, place ascending): every entry below the k-th smallest m, found by
 /// counting over the (small) range of m, plus the first of those at it in place order.
 /// 1/d comes from a table (the bits of `1.0 / d`); the total sums the same terms in the
-/// same order as `knn_f`. An entry outside K adds (x·P)·0 in `knn_f`, which is x·0 for
-/// every finite P ≥ +0.0 (same sign); here it adds x·(+0.0/Σ) = x·0, selected by a mask
-/// rather than a branch (membership is unpredictable), so the sum over the pool is
-/// `knn_f`'s term for term.
+/// same order as `knn_f`; only the k members of K are divided by it and summed (in pool
+/// order; the +0.0 terms `knn_f` adds for the others change nothing, see below).
 pub(crate) fn knn_f_discrete(
     ms: &[u32],
     xs: &[f64],
@@ -186,7 +186,7 @@ pub(crate) fn knn_f_discrete(
         (total, 0.0)
     };
     let inv = &scratch.inv;
-    // The numerator of P for a count (`bits` of it, & a mask below): no branch per entry.
+    // The numerator of P for a count, as bits: no branch per entry.
     let num = |m: u32| -> u64 {
         if min_m == 0 {
             share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0))
@@ -235,14 +235,21 @@ pub(crate) fn knn_f_discrete(
         pick[i] |= i32::from(take);
         need -= usize::from(take);
     }
-    // An entry outside K gets numerator +0.0, so x·(0/Σ) = x·0: no branch on membership.
-    ms.iter()
-        .zip(xs)
-        .zip(pick.iter())
-        .map(|((&m, &xi), &picked)| {
-            let mask = 0u64.wrapping_sub(u64::from(picked != 0));
-            xi * (f64::from_bits(num(m) & mask) / den)
-        })
+    // Σ over K in pool order: the members, in pool order, by a branch-free compaction,
+    // then k divisions. `knn_f` also adds (x·P)·0 = +0.0 for every other entry (x ≥ +0.0
+    // and P ≥ +0.0), which changes no partial sum but an initial −0.0 into +0.0, and
+    // −0.0 + t = +0.0 + t for the first member's t ≥ +0.0: the same sum.
+    let members = &mut scratch.members;
+    members.clear();
+    members.resize(n, 0);
+    let mut c = 0;
+    for (i, &picked) in pick.iter().enumerate() {
+        members[c] = i as u32;
+        c += usize::from(picked != 0);
+    }
+    members[..c]
+        .iter()
+        .map(|&i| xs[i as usize] * (f64::from_bits(num(ms[i as usize])) / den))
         .sum()
 }
 
