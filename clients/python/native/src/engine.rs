@@ -7,7 +7,6 @@ use std::sync::Arc;
 use prost::Message;
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
-use tamrm::core::ActionSpace;
 use tamrm::limits::Limits;
 use tamrm::proto::shaping_server::Shaping;
 use tamrm::registry::Registry;
@@ -104,14 +103,6 @@ pub(crate) async fn call_service(
     })
 }
 
-/// The action facts of a task: (num_actions, action_dim); one of them is 0.
-pub(crate) fn action_facts(space: ActionSpace) -> (u32, usize) {
-    match space {
-        ActionSpace::Discrete { num_actions } => (num_actions, 0),
-        ActionSpace::Continuous { action_dim } => (0, action_dim as usize),
-    }
-}
-
 #[pymethods]
 impl Engine {
     /// An engine over `data_dir` (a `tamrm serve --data-dir` directory, created if
@@ -178,14 +169,11 @@ impl Engine {
         let Some(session) = &stream.session else {
             return Err(status(Code::Internal, "the session did not open"));
         };
-        let opened = convert::task_proto(session.task()).encode_to_vec();
-        let (num_actions, action_dim) = action_facts(session.task().config().action_space);
+        let opened = convert::task_proto(session.task());
         Ok(NativeStream::new(
             Transport::Engine(stream),
-            opened,
+            &opened,
             num_envs as usize,
-            num_actions,
-            action_dim,
         ))
     }
 

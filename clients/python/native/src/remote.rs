@@ -299,23 +299,10 @@ impl Channel {
         let task = py
             .detach(|| stream.open(&tracker))
             .map_err(|s| status_error(&s))?;
-        let space = task
-            .config
-            .as_ref()
-            .map(|c| {
-                if c.num_actions > 0 {
-                    (c.num_actions, 0)
-                } else {
-                    (0, c.action_dim as usize)
-                }
-            })
-            .unwrap_or((0, 0));
         Ok(NativeStream::new(
             Transport::Remote(stream),
-            task.encode_to_vec(),
+            &task,
             num_envs as usize,
-            space.0,
-            space.1,
         ))
     }
 }

@@ -4,9 +4,11 @@
 use std::sync::Mutex;
 
 use numpy::{IntoPyArray, PyArray1};
+use prost::Message;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
+use tamrm::proto;
 use tonic::Code;
 
 use crate::columns::{Answer, Prepared, Shape, StepArgs};
@@ -59,6 +61,8 @@ pub(crate) struct Inner {
     shape: Shape,
     prepared: Prepared,
     closed: bool,
+    /// The pool version after the last answered batch (or at open).
+    pool_version: u64,
 }
 
 /// An open session: `tamrm._session.Session` holds one.
@@ -80,13 +84,15 @@ type StepAnswer<'py> = (
 );
 
 impl NativeStream {
-    pub(crate) fn new(
-        transport: Transport,
-        opened: Vec<u8>,
-        num_envs: usize,
-        num_actions: u32,
-        action_dim: usize,
-    ) -> NativeStream {
+    /// A stream over `transport`, opened on `task` (the answer to `Open`, whichever
+    /// transport gave it: its config tells the action space, its stats the pool version).
+    pub(crate) fn new(transport: Transport, task: &proto::Task, num_envs: usize) -> NativeStream {
+        let config = task.config.unwrap_or_default();
+        let (num_actions, action_dim) = if config.num_actions > 0 {
+            (config.num_actions, 0)
+        } else {
+            (0, config.action_dim as usize)
+        };
         let keep = matches!(transport, Transport::Remote(_));
         NativeStream {
             inner: Mutex::new(Inner {
@@ -98,8 +104,9 @@ impl NativeStream {
                 },
                 prepared: Prepared::default(),
                 closed: false,
+                pool_version: task.stats.map_or(0, |s| s.pool_version),
             }),
-            opened,
+            opened: task.encode_to_vec(),
         }
     }
 
@@ -158,8 +165,7 @@ impl NativeStream {
         let b = inner.prepared.len();
         if b == 0 {
             // Nothing is sent; pending abandons wait for a batch with entries.
-            let pool_version = 0;
-            return Ok(answer_arrays(py, Answer::default(), pool_version));
+            return Ok(answer_arrays(py, Answer::default(), inner.pool_version));
         }
         inner.tracker.take_abandons(&mut inner.prepared.abandon);
         let result = {
@@ -222,6 +228,7 @@ impl NativeStream {
         }
         inner.tracker.record(&inner.prepared, &answer);
         let pool_version = answer.pool_version;
+        inner.pool_version = pool_version;
         Ok(answer_arrays(py, answer, pool_version))
     }
 
