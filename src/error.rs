@@ -33,6 +33,12 @@ pub enum Error {
     /// A configured server limit was reached.
     #[error("{0}")]
     ResourceExhausted(String),
+    /// No credential, a malformed one, or a key the server does not know (SPEC §11).
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// A known key calling beyond its role (SPEC §11).
+    #[error("{0}")]
+    PermissionDenied(String),
     /// The server is shutting down; reconnect to another (or the restarted) server.
     #[error("server is shutting down")]
     ShuttingDown,

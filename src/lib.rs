@@ -9,10 +9,13 @@
 //! - [`session`]: the transport-free stream: episodes, batch validation, the step path;
 //! - [`service`]: the `tamrm.v1.Shaping` gRPC mapping only; errors become statuses in one
 //!   place ([`service::status`]);
+//! - [`auth`]: credentials, roles, tenants and quotas (SPEC §11), checked by a tower
+//!   layer before any handler runs;
 //! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings.
 
 #![warn(missing_docs)]
 
+pub mod auth;
 pub mod core;
 
 /// Generated protobuf and gRPC code for `tamrm.v1`.

@@ -1,7 +1,7 @@
 //! The `tamrm` binary: `tamrm serve` and `tamrm healthcheck`.
 
 use clap::Parser;
-use tamrm::settings::{Cli, Command, HealthcheckArgs, Settings};
+use tamrm::settings::{Cli, Command, HealthcheckArgs, KeyArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
 fn main() -> std::process::ExitCode {
@@ -16,6 +16,7 @@ fn main() -> std::process::ExitCode {
     let args = match cli.command {
         Command::Serve(args) => args,
         Command::Healthcheck(h) => return healthcheck(&h),
+        Command::Key(k) => return key(&k),
     };
     let settings = match Settings::resolve(&args) {
         Ok(s) => s,
@@ -72,6 +73,45 @@ fn healthcheck(args: &HealthcheckArgs) -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// `tamrm key`: a new random key (or the one on standard input) and its key-file entry.
+fn key(args: &KeyArgs) -> std::process::ExitCode {
+    if let Err(e) = tamrm::auth::check_tenant(&args.tenant) {
+        eprintln!("--tenant: {e}");
+        return std::process::ExitCode::from(2);
+    }
+    let key = if args.stdin {
+        let mut s = String::new();
+        if let Err(e) = std::io::Read::read_to_string(&mut std::io::stdin(), &mut s) {
+            eprintln!("cannot read the key from standard input: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+        s.trim().to_string()
+    } else {
+        match tamrm::auth::new_key() {
+            Ok(k) => k,
+            Err(e) => {
+                eprintln!("cannot make a random key: {e}");
+                return std::process::ExitCode::FAILURE;
+            }
+        }
+    };
+    if key.is_empty() {
+        eprintln!("the key is empty");
+        return std::process::ExitCode::from(2);
+    }
+    if !args.stdin {
+        println!("# key: {key}");
+        println!("# (shown once: clients send it as `authorization: Bearer <key>`, e.g. TAMRM_API_KEY; the file below keeps only its SHA-256)");
+    }
+    println!(
+        "[[keys]]\ntenant = \"{}\"\nrole = \"{}\"\nsha256 = \"{}\"",
+        args.tenant,
+        args.role,
+        tamrm::auth::hash_key(key.as_bytes())
+    );
+    std::process::ExitCode::SUCCESS
 }
 
 async fn wait_for_signal() {

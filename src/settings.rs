@@ -29,6 +29,23 @@ pub enum Command {
     /// Ask a server's grpc.health.v1 service whether it serves; exit 0 if it does, 1 if
     /// not (for container health checks: no shell needed).
     Healthcheck(HealthcheckArgs),
+    /// Make a new random API key, or hash a given one: prints the key (once) and the
+    /// `[[keys]]` entry for the `--api-keys` file, which holds only its SHA-256.
+    Key(KeyArgs),
+}
+
+/// Flags of `tamrm key`.
+#[derive(Debug, Clone, Args)]
+pub struct KeyArgs {
+    /// The tenant the key acts for.
+    #[arg(long, default_value = "default")]
+    pub tenant: String,
+    /// What the key may do: reader, writer or admin.
+    #[arg(long, default_value = "writer", value_parser = ["reader", "writer", "admin"])]
+    pub role: String,
+    /// Hash the key read from standard input instead of making a new one.
+    #[arg(long)]
+    pub stdin: bool,
 }
 
 /// Flags of `tamrm healthcheck`.
@@ -90,6 +107,11 @@ pub struct ServeArgs {
     /// Seconds to wait for open streams at shutdown before exiting anyway [default: 30].
     #[arg(long, env = "TAMRM_SHUTDOWN_GRACE_SECS")]
     pub shutdown_grace_secs: Option<u64>,
+    /// API key file (TOML: SHA-256 of each key, its tenant and role, tenant quotas; see
+    /// docs/deployment.md). With it every RPC but health checks needs
+    /// `authorization: Bearer <key>`; read again on SIGHUP. Without it the server is open.
+    #[arg(long, env = "TAMRM_API_KEYS", value_name = "FILE")]
+    pub api_keys: Option<PathBuf>,
 }
 
 /// The config file: every key optional.
@@ -107,6 +129,8 @@ pub struct FileSettings {
     pub shutdown_grace_secs: Option<u64>,
     /// Limits (any subset).
     pub limits: Option<LimitsLayer>,
+    /// API key file.
+    pub api_keys: Option<PathBuf>,
 }
 
 /// Resolved server settings.
@@ -122,6 +146,8 @@ pub struct Settings {
     pub limits: Limits,
     /// Shutdown grace period, seconds.
     pub shutdown_grace_secs: u64,
+    /// API key file, or `None` for an open server.
+    pub api_keys: Option<PathBuf>,
 }
 
 impl Default for Settings {
@@ -132,6 +158,7 @@ impl Default for Settings {
             port_file: None,
             limits: Limits::default(),
             shutdown_grace_secs: 30,
+            api_keys: None,
         }
     }
 }
@@ -168,6 +195,9 @@ impl Settings {
             self.port_file.clone_from(&f.port_file);
         }
         set(&mut self.shutdown_grace_secs, f.shutdown_grace_secs);
+        if f.api_keys.is_some() {
+            self.api_keys.clone_from(&f.api_keys);
+        }
         if let Some(l) = &f.limits {
             self.limits.apply(l);
         }
@@ -182,6 +212,9 @@ impl Settings {
             self.port_file.clone_from(&a.port_file);
         }
         set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
+        if a.api_keys.is_some() {
+            self.api_keys.clone_from(&a.api_keys);
+        }
         self.limits.apply(&a.limits);
     }
 }
@@ -239,7 +272,7 @@ mod tests {
         full.extend_from_slice(args);
         match Cli::try_parse_from(full).unwrap().command {
             Command::Serve(a) => a,
-            Command::Healthcheck(_) => unreachable!("parsed a serve command"),
+            _ => unreachable!("parsed a serve command"),
         }
     }
 

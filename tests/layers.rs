@@ -118,8 +118,46 @@ fn the_service_maps_protocols_and_never_touches_files() {
 }
 
 #[test]
+fn auth_decides_before_the_service_and_knows_no_episode() {
+    forbid(
+        "auth",
+        &[
+            "crate::session",
+            "crate::service",
+            "crate::server",
+            "crate::settings",
+            "crate::store",
+            "std::net",
+        ],
+    );
+}
+
+/// Every RPC of `tamrm.v1.Shaping` has its role in the one table (SPEC §11), and the
+/// table names no RPC the proto lacks.
+/// The descriptors of `proto/`, as the server embeds them.
+fn descriptors() -> prost_types::FileDescriptorSet {
+    prost_types::FileDescriptorSet::decode(tamrm::proto::FILE_DESCRIPTOR_SET).unwrap()
+}
+
+#[test]
+fn every_rpc_has_a_role() {
+    let fds = descriptors();
+    let service = fds
+        .file
+        .iter()
+        .flat_map(|f| &f.service)
+        .find(|s| s.name() == "Shaping")
+        .expect("Shaping in the descriptor set");
+    let mut rpcs: Vec<&str> = service.method.iter().map(|m| m.name()).collect();
+    let mut table: Vec<&str> = tamrm::auth::SHAPING_ROLES.iter().map(|(m, _)| *m).collect();
+    rpcs.sort_unstable();
+    table.sort_unstable();
+    assert_eq!(rpcs, table, "add the RPC's role to auth::SHAPING_ROLES");
+}
+
+#[test]
 fn task_config_fields_are_the_protos() {
-    let fds = prost_types::FileDescriptorSet::decode(tamrm::proto::FILE_DESCRIPTOR_SET).unwrap();
+    let fds = descriptors();
     let msg = fds
         .file
         .iter()

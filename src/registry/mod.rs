@@ -1,6 +1,11 @@
 //! Every task of a server: creation (idempotent), lookup, listing, deletion, limits, and
 //! the refresh of pool snapshots from a store shared with other servers.
 //!
+//! Tasks are per tenant (SPEC §11): every call names the tenant, and nothing here lets
+//! one tenant's call see another's tasks (lookups, listings and the "did you mean" hint
+//! of a miss stay within the tenant). Without credentials every caller is
+//! [`DEFAULT_TENANT`].
+//!
 //! Locking: the task map is a `DashMap` (sharded; lookups never wait on other tasks).
 //! Create and delete are serialised by one admin lock, which the step path never touches.
 //! Per-task locking is described in [`task`].
@@ -18,6 +23,31 @@ use crate::core::{Pool, TaskConfig, TaskConfigInput};
 use crate::error::Error;
 use crate::limits::Limits;
 use crate::store::{Counters, Store, StoreError};
+
+/// The tenant of callers without credentials (a server without `--api-keys`, the
+/// embedded engine), and the owner of data written before tenants existed.
+pub const DEFAULT_TENANT: &str = "default";
+
+/// Separates tenant and task id in a [`task_key`]; a task id cannot contain it.
+const TENANT_SEPARATOR: char = '@';
+
+/// The key of tenant `tenant`'s task `id` in the registry and the store: the id itself
+/// for [`DEFAULT_TENANT`] (so data written before tenants existed is the default
+/// tenant's), `tenant@id` for any other. Task ids never contain `@`
+/// (`session::validate_task_id`), tenant names neither (`auth`), so the key is unambiguous.
+pub fn task_key(tenant: &str, id: &str) -> String {
+    if tenant == DEFAULT_TENANT {
+        id.to_string()
+    } else {
+        format!("{tenant}{TENANT_SEPARATOR}{id}")
+    }
+}
+
+/// The (tenant, id) of a [`task_key`].
+pub fn split_key(key: &str) -> (&str, &str) {
+    key.split_once(TENANT_SEPARATOR)
+        .unwrap_or((DEFAULT_TENANT, key))
+}
 
 /// Every task of the server.
 pub struct Registry {
@@ -71,16 +101,20 @@ impl Registry {
         self.store.describe()
     }
 
-    /// Creates a task, or returns the existing one if its resolved config is the same.
+    /// Creates `tenant`'s task `id`, or returns the existing one if its resolved config is
+    /// the same. `tenant_max_tasks` is the tenant's quota of tasks, if it has one.
     pub async fn create(
         &self,
+        tenant: &str,
         id: &str,
         input: &TaskConfigInput,
+        tenant_max_tasks: Option<usize>,
     ) -> Result<Arc<TaskHandle>, Error> {
         let config = TaskConfig::resolve(input)
             .map_err(|e| Error::invalid(format!("config.{}", e.field), e.message))?;
+        let key = task_key(tenant, id);
         let _admin = self.admin.lock().await;
-        if let Some(existing) = self.tasks.get(id) {
+        if let Some(existing) = self.tasks.get(&key) {
             return if existing.config().same_as(&config) {
                 Ok(existing.clone())
             } else {
@@ -102,64 +136,98 @@ impl Registry {
                 self.limits.max_tasks
             )));
         }
-        self.store.create_task(id, &config).await?;
+        if let Some(max) = tenant_max_tasks {
+            if self.count(tenant) >= max {
+                return Err(Error::ResourceExhausted(format!(
+                    "task quota reached: tenant {tenant:?} may hold at most max_tasks = {max} tasks"
+                )));
+            }
+        }
+        self.store.create_task(&key, &config).await?;
         let handle = Arc::new(TaskHandle::new(
-            id.to_string(),
+            key.clone(),
             config,
             Pool::new(config.pool_capacity as usize),
             Counters::default(),
             self.store.clone(),
         ));
-        self.tasks.insert(id.to_string(), handle.clone());
+        self.tasks.insert(key, handle.clone());
         Ok(handle)
     }
 
-    /// Looks a task up.
-    pub fn get(&self, id: &str) -> Result<Arc<TaskHandle>, Error> {
+    /// Looks `tenant`'s task `id` up.
+    pub fn get(&self, tenant: &str, id: &str) -> Result<Arc<TaskHandle>, Error> {
         self.tasks
-            .get(id)
+            .get(&task_key(tenant, id))
             .map(|t| t.clone())
             .ok_or_else(|| Error::TaskNotFound {
                 id: id.to_string(),
-                hint: self.closest(id),
+                hint: self.closest(tenant, id),
             })
     }
 
-    /// The existing id closest to `id` by edit distance, if it is a typo away (at most a
-    /// third of the id's length, and at most 3 edits). Looked at only on a miss.
-    fn closest(&self, id: &str) -> Option<String> {
+    /// `tenant`'s existing id closest to `id` by edit distance, if it is a typo away (at
+    /// most a third of the id's length, and at most 3 edits). Looked at only on a miss.
+    fn closest(&self, tenant: &str, id: &str) -> Option<String> {
         let max = (id.chars().count() / 3).clamp(1, 3);
         self.tasks
             .iter()
-            .map(|e| (edit_distance(id, e.key()), e.key().clone()))
+            .filter(|e| e.value().tenant() == tenant)
+            .map(|e| {
+                (
+                    edit_distance(id, e.value().id()),
+                    e.value().id().to_string(),
+                )
+            })
             .filter(|(d, _)| *d <= max)
             .min()
             .map(|(_, k)| k)
     }
 
-    /// Every task, ordered by id.
-    pub fn list(&self) -> Vec<Arc<TaskHandle>> {
-        let mut v: Vec<_> = self.tasks.iter().map(|e| e.value().clone()).collect();
+    /// `tenant`'s tasks, ordered by id.
+    pub fn list(&self, tenant: &str) -> Vec<Arc<TaskHandle>> {
+        let mut v: Vec<_> = self
+            .tasks
+            .iter()
+            .filter(|e| e.value().tenant() == tenant)
+            .map(|e| e.value().clone())
+            .collect();
         v.sort_by(|a, b| a.id().cmp(b.id()));
         v
     }
 
-    /// Deletes a task; its open streams fail with NOT_FOUND at their next batch.
-    pub async fn delete(&self, id: &str) -> Result<(), Error> {
+    /// How many tasks `tenant` holds.
+    pub fn count(&self, tenant: &str) -> usize {
+        self.tasks
+            .iter()
+            .filter(|e| e.value().tenant() == tenant)
+            .count()
+    }
+
+    /// Every task of every tenant, ordered by key (for the server's own work: counters).
+    fn all(&self) -> Vec<Arc<TaskHandle>> {
+        let mut v: Vec<_> = self.tasks.iter().map(|e| e.value().clone()).collect();
+        v.sort_by(|a, b| a.key().cmp(b.key()));
+        v
+    }
+
+    /// Deletes `tenant`'s task `id`; its open streams fail with NOT_FOUND at their next
+    /// batch.
+    pub async fn delete(&self, tenant: &str, id: &str) -> Result<(), Error> {
         let _admin = self.admin.lock().await;
-        let handle = self.get(id)?;
+        let handle = self.get(tenant, id)?;
         let _writer = handle.lock_for_delete().await;
-        self.store.delete_task(id).await?;
+        self.store.delete_task(handle.key()).await?;
         handle.mark_deleted();
-        self.tasks.remove(id);
+        self.tasks.remove(handle.key());
         Ok(())
     }
 
     /// Persists every task's counters (at graceful shutdown).
     pub async fn flush_counters(&self) {
-        for task in self.list() {
+        for task in self.all() {
             if let Err(e) = task.flush_counters().await {
-                tracing::warn!(task = task.id(), error = %e, "could not persist counters");
+                tracing::warn!(task = task.key(), error = %e, "could not persist counters");
             }
         }
     }
@@ -184,7 +252,7 @@ impl Registry {
                 let Some(registry) = registry.upgrade() else {
                     return;
                 };
-                let Ok(task) = registry.get(&change.task) else {
+                let Some(task) = registry.tasks.get(&change.task).map(|t| t.clone()) else {
                     continue;
                 };
                 if change.version <= task.published_version() {

@@ -41,7 +41,8 @@ pub struct TaskStats {
 
 /// One task of the registry.
 pub struct TaskHandle {
-    id: String,
+    /// The registry's and the store's key: [`super::task_key`] of tenant and id.
+    key: String,
     config: TaskConfig,
     /// The published pool; the lock is held only to copy or swap the `Arc`.
     pool: RwLock<Arc<Pool>>,
@@ -93,14 +94,14 @@ impl Writer {
 
 impl TaskHandle {
     pub(super) fn new(
-        id: String,
+        key: String,
         config: TaskConfig,
         pool: Pool,
         counters: Counters,
         store: Arc<dyn Store>,
     ) -> Self {
         TaskHandle {
-            id,
+            key,
             config,
             published: AtomicU64::new(pool.version()),
             pool: RwLock::new(Arc::new(pool)),
@@ -114,9 +115,20 @@ impl TaskHandle {
         }
     }
 
-    /// The task id.
+    /// The task id, as its tenant names it (what clients send and see).
     pub fn id(&self) -> &str {
-        &self.id
+        super::split_key(&self.key).1
+    }
+
+    /// The tenant that owns the task (SPEC §11).
+    pub fn tenant(&self) -> &str {
+        super::split_key(&self.key).0
+    }
+
+    /// The key of the task in the registry and the store: tenant and id in one string
+    /// (see [`super::task_key`]).
+    pub fn key(&self) -> &str {
+        &self.key
     }
 
     /// The resolved configuration.
@@ -134,7 +146,7 @@ impl TaskHandle {
     /// `NOT_FOUND` once the task was deleted.
     pub fn check_live(&self) -> Result<(), Error> {
         if self.deleted.load(Ordering::Acquire) {
-            Err(Error::not_found(self.id.clone()))
+            Err(Error::not_found(self.id()))
         } else {
             Ok(())
         }
@@ -276,7 +288,7 @@ impl TaskHandle {
         }
         let committed = self
             .store
-            .commit(&self.id, writer.base.clone(), ops, self.counters())
+            .commit(&self.key, writer.base.clone(), ops, self.counters())
             .await?;
         self.publish(committed.pool.clone());
         Ok(committed)
@@ -316,7 +328,7 @@ impl TaskHandle {
             return Ok(());
         }
         self.store
-            .save_counters(&self.id, self.snapshot(), self.counters())
+            .save_counters(&self.key, self.snapshot(), self.counters())
             .await
     }
 

@@ -13,6 +13,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tonic::transport::Server;
 
+use crate::auth::{Access, AuthLayer};
 use crate::proto::shaping_server::ShapingServer;
 use crate::registry::Registry;
 use crate::service::status::remap_response_headers;
@@ -37,6 +38,9 @@ pub enum StartError {
     /// The port file could not be written.
     #[error("cannot write port file: {0}")]
     PortFile(std::io::Error),
+    /// The API key file could not be read or is invalid.
+    #[error("{0}")]
+    ApiKeys(#[from] crate::auth::KeyFileError),
     /// The reflection service could not be built from the embedded descriptors.
     #[error("cannot build the reflection service: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
@@ -108,9 +112,14 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         source,
     })?;
 
+    let access = open_access(settings, addr)?;
     let shutdown = CancellationToken::new();
     let limit = settings.limits.max_message_bytes;
-    let shaping = ShapingServer::new(ShapingService::new(registry.clone(), shutdown.clone()))
+    let mut service = ShapingService::new(registry.clone(), shutdown.clone());
+    if access.is_some() {
+        service = service.with_credentials_required();
+    }
+    let shaping = ShapingServer::new(service)
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit);
     let (health_reporter, health) = tonic_health::server::health_reporter();
@@ -134,6 +143,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(20)))
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
+        .layer(tower::util::option_layer(access.map(AuthLayer::new)))
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
@@ -164,6 +174,46 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         serve,
         closing,
     })
+}
+
+/// Reads the API key file, if the settings name one, and reloads it on SIGHUP for as long
+/// as the server runs; without one, says that the server is open (a warning when it
+/// listens beyond loopback).
+fn open_access(settings: &Settings, addr: SocketAddr) -> Result<Option<Arc<Access>>, StartError> {
+    let Some(path) = &settings.api_keys else {
+        if addr.ip().is_loopback() {
+            tracing::info!("no --api-keys: the server is open to every local caller (one default tenant, every right)");
+        } else {
+            tracing::warn!("no --api-keys: the server is OPEN: anyone who reaches {addr} can read, change and delete every task; give it an --api-keys file");
+        }
+        return Ok(None);
+    };
+    let access = Arc::new(Access::open(path)?);
+    tracing::info!(file = %path.display(), "API keys required (authorization: Bearer <key>); SIGHUP reads the file again");
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::hangup()) {
+            Ok(mut hup) => {
+                let weak = Arc::downgrade(&access);
+                tokio::spawn(async move {
+                    while hup.recv().await.is_some() {
+                        let Some(access) = weak.upgrade() else { return };
+                        match access.reload() {
+                            Ok((keys, tenants)) => {
+                                tracing::info!(keys, tenants, "API key file read again")
+                            }
+                            Err(e) => tracing::error!("{e}; the keys in force stay"),
+                        }
+                    }
+                });
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot watch SIGHUP: the API key file is read only at start")
+            }
+        }
+    }
+    Ok(Some(access))
 }
 
 /// Asks the server at `addr` whether it serves `tamrm.v1.Shaping` (grpc.health.v1),

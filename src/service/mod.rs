@@ -12,6 +12,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::auth::Caller;
 use crate::error::Error;
 use crate::proto::shaping_server::Shaping;
 use crate::proto::{self};
@@ -24,18 +25,47 @@ use convert::{config_input, pool_proto, task_proto, trajectory_input};
 pub struct ShapingService {
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    /// `None`: every request must carry a [`Caller`] (put there by `auth::AuthLayer`);
+    /// `Some`: the caller of requests without one (a server without credentials, the
+    /// embedded engine).
+    open_caller: Option<Caller>,
 }
 
 impl ShapingService {
-    /// A service over `registry`; open streams end with UNAVAILABLE once `shutdown` is
-    /// cancelled (after finishing the batch they are processing).
+    /// A service over `registry` open to every caller as the default tenant; open
+    /// streams end with UNAVAILABLE once `shutdown` is cancelled (after finishing the
+    /// batch they are processing).
     pub fn new(registry: Arc<Registry>, shutdown: CancellationToken) -> ShapingService {
-        ShapingService { registry, shutdown }
+        ShapingService {
+            registry,
+            shutdown,
+            open_caller: Some(Caller::open()),
+        }
     }
 
-    fn task(&self, id: &str) -> Result<Arc<TaskHandle>, Error> {
+    /// Requires a [`Caller`] on every request (credentials are on): a request without
+    /// one is refused with UNAUTHENTICATED rather than served as the default tenant.
+    pub fn with_credentials_required(mut self) -> ShapingService {
+        self.open_caller = None;
+        self
+    }
+
+    /// Who makes `request`.
+    fn caller<T>(&self, request: &Request<T>) -> Result<Caller, Error> {
+        match (request.extensions().get::<Caller>(), &self.open_caller) {
+            (Some(c), _) | (None, Some(c)) => Ok(c.clone()),
+            (None, None) => Err(Error::Unauthenticated(
+                "missing credentials: this server needs the metadata `authorization: Bearer <key>`"
+                    .into(),
+            )),
+        }
+    }
+
+    /// The caller's task `id`.
+    fn task<T>(&self, request: &Request<T>, id: &str) -> Result<Arc<TaskHandle>, Error> {
+        let caller = self.caller(request)?;
         validate_task_id("task_id", id)?;
-        self.registry.get(id)
+        self.registry.get(caller.tenant(), id)
     }
 
     /// An answer larger than `max_message_bytes` could not be sent; say so clearly
@@ -57,11 +87,15 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::CreateTaskRequest>,
     ) -> Result<Response<proto::Task>, Status> {
+        let caller = self.caller(&request)?;
         let req = request.into_inner();
         validate_task_id("task_id", &req.task_id)?;
         let input = config_input(req.config.as_ref());
-        let task = self.registry.create(&req.task_id, &input).await?;
-        tracing::info!(task = %req.task_id, config = ?task.config(), "task created (or already present)");
+        let task = self
+            .registry
+            .create(caller.tenant(), &req.task_id, &input, caller.max_tasks())
+            .await?;
+        tracing::info!(tenant = caller.tenant(), task = %req.task_id, config = ?task.config(), "task created (or already present)");
         Ok(Response::new(task_proto(&task)))
     }
 
@@ -69,15 +103,21 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::GetTaskRequest>,
     ) -> Result<Response<proto::Task>, Status> {
-        let task = self.task(&request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id)?;
         Ok(Response::new(task_proto(&task)))
     }
 
     async fn list_tasks(
         &self,
-        _request: Request<proto::ListTasksRequest>,
+        request: Request<proto::ListTasksRequest>,
     ) -> Result<Response<proto::ListTasksResponse>, Status> {
-        let tasks = self.registry.list().iter().map(|t| task_proto(t)).collect();
+        let caller = self.caller(&request)?;
+        let tasks = self
+            .registry
+            .list(caller.tenant())
+            .iter()
+            .map(|t| task_proto(t))
+            .collect();
         let msg = proto::ListTasksResponse { tasks };
         self.fits("tasks", &msg)?;
         Ok(Response::new(msg))
@@ -87,10 +127,11 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::DeleteTaskRequest>,
     ) -> Result<Response<proto::DeleteTaskResponse>, Status> {
+        let caller = self.caller(&request)?;
         let id = &request.get_ref().task_id;
         validate_task_id("task_id", id)?;
-        self.registry.delete(id).await?;
-        tracing::info!(task = %id, "task deleted");
+        self.registry.delete(caller.tenant(), id).await?;
+        tracing::info!(tenant = caller.tenant(), task = %id, "task deleted");
         Ok(Response::new(proto::DeleteTaskResponse {}))
     }
 
@@ -98,9 +139,9 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::ResetPoolRequest>,
     ) -> Result<Response<proto::Task>, Status> {
-        let task = self.task(&request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id)?;
         let version = task.reset_pool().await?;
-        tracing::info!(task = %task.id(), pool_version = version, "pool reset");
+        tracing::info!(tenant = task.tenant(), task = %task.id(), pool_version = version, "pool reset");
         Ok(Response::new(task_proto(&task)))
     }
 
@@ -108,7 +149,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::GetPoolRequest>,
     ) -> Result<Response<proto::Pool>, Status> {
-        let task = self.task(&request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id)?;
         let pool = task.pool_snapshot()?;
         let msg = pool_proto(task.id(), &pool);
         self.fits("pool", &msg)?;
@@ -119,8 +160,8 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::AddTrajectoryRequest>,
     ) -> Result<Response<proto::AddTrajectoryResponse>, Status> {
+        let task = self.task(&request, &request.get_ref().task_id)?;
         let req = request.into_inner();
-        let task = self.task(&req.task_id)?;
         let (actions, score) = trajectory_input(task.config(), req.trajectory)?;
         let (inserted, pool_version) = task.offer(actions, score).await?;
         Ok(Response::new(proto::AddTrajectoryResponse {
@@ -135,11 +176,14 @@ impl Shaping for ShapingService {
         &self,
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<Self::ShapeStream>, Status> {
+        let caller = self.caller(&request)?;
+        let slot = caller.open_stream()?;
         let inbound = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         tokio::spawn(stream::run(
             self.registry.clone(),
             self.shutdown.clone(),
+            (caller, slot),
             inbound,
             tx,
         ));

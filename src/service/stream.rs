@@ -10,6 +10,7 @@ use tonic::{Status, Streaming};
 
 use super::convert::{batch_view, resume_views, shaped_proto, task_proto};
 use super::status::remap_decode_status;
+use crate::auth::{Caller, StreamSlot};
 use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
 use crate::registry::Registry;
@@ -66,6 +67,7 @@ async fn next(
 async fn serve(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    caller: &Caller,
     mut inbound: Streaming<ShapeRequest>,
     tx: &Tx,
 ) -> End {
@@ -75,6 +77,7 @@ async fn serve(
         Ok(shape_request::Kind::Open(o)) => {
             let resume = resume_views(&o.resume);
             let req = OpenRequest {
+                tenant: caller.tenant(),
                 task_id: &o.task_id,
                 num_envs: o.num_envs,
                 resume: &resume,
@@ -108,6 +111,9 @@ async fn serve(
             }
             Err(end) => return end,
         };
+        if let Err(e) = caller.take_steps(batch.rewards.len()) {
+            return e.into();
+        }
         let shaped = match session.step(&batch_view(&batch, &mut scores)).await {
             Ok(shaped) => shaped_proto(&shaped),
             Err(e) => return e.into(),
@@ -121,14 +127,16 @@ async fn serve(
     }
 }
 
-/// Drives one stream to its end and reports a failure as the stream's final status.
+/// Drives one stream of `caller` to its end and reports a failure as the stream's final
+/// status; the caller's stream slot is held until then.
 pub(super) async fn run(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    (caller, _slot): (Caller, StreamSlot),
     inbound: Streaming<ShapeRequest>,
     tx: Tx,
 ) {
-    match serve(registry, shutdown, inbound, &tx).await {
+    match serve(registry, shutdown, &caller, inbound, &tx).await {
         End::ClientDone => {}
         End::Fail(status) => {
             tracing::debug!(code = ?status.code(), message = status.message(), "stream ended with an error");

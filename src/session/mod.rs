@@ -23,7 +23,7 @@ pub use batch::{Batch, Entries};
 use crate::core::{ActionCount, Episode, KnnScratch, Pool, StepInput, StepOutput};
 use crate::error::Error;
 use crate::limits::Limits;
-use crate::registry::{Registry, StreamGuard, TaskHandle, Writer};
+use crate::registry::{Registry, StreamGuard, TaskHandle, Writer, DEFAULT_TENANT};
 use crate::store::PoolOp;
 
 /// Entries × pool capacity above which shaping a batch counts as long CPU work (about a
@@ -31,8 +31,11 @@ use crate::store::PoolOp;
 pub const HEAVY_BATCH_WORK: usize = 1 << 20;
 
 /// What opens a session (the proto's `Open`).
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 pub struct OpenRequest<'a> {
+    /// The tenant of the caller (SPEC §11); [`crate::registry::DEFAULT_TENANT`] without
+    /// credentials.
+    pub tenant: &'a str,
     /// The task to shape on.
     pub task_id: &'a str,
     /// Environments of the stream, numbered `0..num_envs`.
@@ -41,6 +44,19 @@ pub struct OpenRequest<'a> {
     pub resume: &'a [Resume<'a>],
     /// Names the client across its streams; empty for none.
     pub client_id: &'a str,
+}
+
+impl Default for OpenRequest<'_> {
+    /// The default tenant's task `""`, no env, nothing resumed, no client id.
+    fn default() -> Self {
+        OpenRequest {
+            tenant: DEFAULT_TENANT,
+            task_id: "",
+            num_envs: 0,
+            resume: &[],
+            client_id: "",
+        }
+    }
 }
 
 /// One environment's current episode, resumed on a new stream (the proto's `EnvResume`).
@@ -137,7 +153,7 @@ impl StreamSession {
                 req.num_envs
             )));
         }
-        let task = registry.get(req.task_id)?;
+        let task = registry.get(req.tenant, req.task_id)?;
         let config = *task.config();
         let mut episodes: Vec<Episode> = (0..req.num_envs)
             .map(|_| Episode::new(config.action_space))

@@ -11,6 +11,7 @@ async fn registry_with(store: Arc<dyn crate::store::Store>, limits: Limits) -> R
 
 async fn task(r: &Registry, id: &str, capacity: u32) -> Arc<TaskHandle> {
     r.create(
+        DEFAULT_TENANT,
         id,
         &TaskConfigInput {
             num_actions: 2,
@@ -19,6 +20,7 @@ async fn task(r: &Registry, id: &str, capacity: u32) -> Arc<TaskHandle> {
             start_step: Some(0),
             ..Default::default()
         },
+        None,
     )
     .await
     .unwrap()
@@ -28,6 +30,7 @@ fn open(r: &Registry, id: &str, num_envs: u32) -> Result<StreamSession, Error> {
     StreamSession::open(
         r,
         &OpenRequest {
+            tenant: DEFAULT_TENANT,
             task_id: id,
             num_envs,
             ..Default::default()
@@ -87,7 +90,7 @@ async fn open_checks_its_request() {
     assert_eq!(s.num_envs(), 4);
     assert_eq!(s.task().stats().open_streams, 1);
     drop(s);
-    assert_eq!(r.get("t").unwrap().stats().open_streams, 0);
+    assert_eq!(r.get(DEFAULT_TENANT, "t").unwrap().stats().open_streams, 0);
 }
 
 #[tokio::test]
@@ -237,7 +240,7 @@ async fn a_deleted_task_ends_its_sessions_with_not_found() {
     let r = registry_with(Arc::new(MemoryStore::new()), Limits::default()).await;
     task(&r, "t", 4).await;
     let mut s = open(&r, "t", 1).unwrap();
-    r.delete("t").await.unwrap();
+    r.delete(DEFAULT_TENANT, "t").await.unwrap();
     let b = Batch {
         actions: &[0],
         rewards: &[0.0],
@@ -250,6 +253,7 @@ async fn a_deleted_task_ends_its_sessions_with_not_found() {
 async fn gated_potential_counts_only_where_knn_is_active() {
     let r = registry_with(Arc::new(MemoryStore::new()), Limits::default()).await;
     r.create(
+        DEFAULT_TENANT,
         "g",
         &TaskConfigInput {
             num_actions: 2,
@@ -259,6 +263,7 @@ async fn gated_potential_counts_only_where_knn_is_active() {
             beta: Some(1.0),
             ..Default::default()
         },
+        None,
     )
     .await
     .unwrap();

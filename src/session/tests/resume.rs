@@ -40,6 +40,7 @@ async fn a_resumed_episode_continues_exactly_as_an_uninterrupted_one() {
         ..Default::default()
     }];
     let req = OpenRequest {
+        tenant: DEFAULT_TENANT,
         task_id: "t",
         num_envs: 1,
         resume: &resume,
@@ -68,6 +69,7 @@ async fn a_resumed_episode_continues_exactly_as_an_uninterrupted_one() {
 async fn a_re_sent_episode_end_is_committed_once_per_client() {
     let (r, t, _) = setup(4, 1).await;
     let with_client = |resume: &'static [Resume<'static>]| OpenRequest {
+        tenant: DEFAULT_TENANT,
         task_id: "t",
         num_envs: 1,
         resume,
@@ -99,6 +101,7 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
     let mut other = StreamSession::open(
         &r,
         &OpenRequest {
+            tenant: DEFAULT_TENANT,
             client_id: "client-2",
             ..with_client(&BEFORE)
         },
@@ -160,6 +163,7 @@ async fn an_invalid_resume_opens_nothing_and_names_the_field() {
         ];
         let list = if i == 4 { &list[..] } else { &list[1..] };
         let req = OpenRequest {
+            tenant: DEFAULT_TENANT,
             task_id: "t",
             num_envs: 2,
             resume: list,

@@ -159,15 +159,28 @@ fn lock_data_dir(root: &Path) -> Result<fs::File, StoreError> {
         .write(true)
         .open(&path)
         .map_err(|e| err(&path, format!("open: {e}")))?;
-    match file.try_lock() {
-        Ok(()) => Ok(file),
-        Err(fs::TryLockError::WouldBlock) => Err(err(
-            root,
-            "the data dir is in use by another tamrm process (its LOCK file is held); stop that process or use another data dir",
-        )),
-        Err(fs::TryLockError::Error(e)) => Err(err(&path, format!("lock: {e}"))),
+    // A lock belongs to the open file description, which a process forked by another
+    // thread of this one shares until it execs: a lock just released can look held for
+    // a moment. Only a lock still held after `LOCK_PATIENCE` is another user's.
+    let deadline = std::time::Instant::now() + LOCK_PATIENCE;
+    loop {
+        match file.try_lock() {
+            Ok(()) => return Ok(file),
+            Err(fs::TryLockError::WouldBlock) if std::time::Instant::now() < deadline => {
+                std::thread::sleep(std::time::Duration::from_millis(5))
+            }
+            Err(fs::TryLockError::WouldBlock) => return Err(err(
+                root,
+                "the data dir is in use by another tamrm process (its LOCK file is held); stop that process or use another data dir",
+            )),
+            Err(fs::TryLockError::Error(e)) => return Err(err(&path, format!("lock: {e}"))),
+        }
     }
 }
+
+/// How long [`lock_data_dir`] waits for a held lock before it reports the data dir as in
+/// use.
+const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_millis(500);
 
 fn checked<T>(path: &Path, r: Result<T, String>) -> Result<T, StoreError> {
     r.map_err(|m| err(path, m))

@@ -9,7 +9,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use tamrm::limits::Limits;
 use tamrm::proto::shaping_server::Shaping;
-use tamrm::registry::Registry;
+use tamrm::registry::{Registry, DEFAULT_TENANT};
 use tamrm::service::{convert, ShapingService};
 use tamrm::session::{OpenRequest, StreamSession};
 use tamrm::store::{DiskStore, MemoryStore, Store};
@@ -219,6 +219,7 @@ impl EngineStream {
     pub fn reopen(&mut self) -> Result<(), Status> {
         self.session = None;
         let req = OpenRequest {
+            tenant: DEFAULT_TENANT,
             task_id: &self.task_id,
             num_envs: self.num_envs,
             resume: &[],

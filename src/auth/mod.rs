@@ -1,0 +1,404 @@
+//! Credentials, roles, tenants and quotas (SPEC §11).
+//!
+//! With `--api-keys FILE` every RPC but the health checks carries
+//! `authorization: Bearer <key>`. [`Access::authorize`] hashes the key (SHA-256), compares
+//! the hash with every known one in constant time, and checks the key's role against the
+//! RPC's ([`SHAPING_ROLES`], the one table). The [`AuthLayer`] does this for every request
+//! before any handler runs and hands the handler a [`Caller`]: the tenant whose tasks the
+//! call sees, and the tenant's quotas. Without a key file every caller is
+//! [`Caller::open`]: the default tenant with every right (the server says so at start).
+//!
+//! The key file is read again by [`Access::reload`] (on SIGHUP); open streams keep going,
+//! usage counters (open streams, the steps-per-second bucket) carry over.
+
+mod keys;
+mod layer;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use dashmap::DashMap;
+use parking_lot::{Mutex, RwLock};
+use serde::Deserialize;
+use sha2::{Digest, Sha256};
+use subtle::{ConditionallySelectable, ConstantTimeEq};
+
+pub use keys::{check_tenant, Key, KeyFile, KeyFileError, Quotas, MAX_TENANT_LEN};
+pub use layer::AuthLayer;
+
+use crate::error::Error;
+use crate::registry::DEFAULT_TENANT;
+
+/// What a key may do. Each role includes the ones before it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// GetTask, ListTasks, GetPool.
+    Reader,
+    /// Reader, plus CreateTask, Shape, AddTrajectory.
+    Writer,
+    /// Writer, plus DeleteTask, ResetPool.
+    Admin,
+}
+
+impl Role {
+    /// The name used in key files and messages.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Role::Reader => "reader",
+            Role::Writer => "writer",
+            Role::Admin => "admin",
+        }
+    }
+}
+
+/// The role each `tamrm.v1.Shaping` RPC needs (SPEC §11). A test checks that it lists
+/// every RPC of the proto.
+pub const SHAPING_ROLES: &[(&str, Role)] = &[
+    ("GetTask", Role::Reader),
+    ("ListTasks", Role::Reader),
+    ("GetPool", Role::Reader),
+    ("CreateTask", Role::Writer),
+    ("Shape", Role::Writer),
+    ("AddTrajectory", Role::Writer),
+    ("DeleteTask", Role::Admin),
+    ("ResetPool", Role::Admin),
+];
+
+/// The gRPC health service, which needs no credential.
+const HEALTH_SERVICE: &str = "grpc.health.v1.Health";
+
+/// What a request to `path` (`/package.Service/Method`) needs: `None` for health checks;
+/// otherwise the role. Server reflection and unknown paths need any valid key.
+pub fn needed_role(path: &str) -> Option<Role> {
+    let (service, method) = path
+        .strip_prefix('/')
+        .and_then(|p| p.split_once('/'))
+        .unwrap_or(("", ""));
+    if service == HEALTH_SERVICE {
+        return None;
+    }
+    if service == crate::proto::shaping_server::SERVICE_NAME {
+        if let Some((_, role)) = SHAPING_ROLES.iter().find(|(m, _)| *m == method) {
+            return Some(*role);
+        }
+    }
+    Some(Role::Reader)
+}
+
+/// Who makes a call: the tenant whose tasks it sees, its role, and the tenant's quotas.
+#[derive(Clone)]
+pub struct Caller {
+    role: Role,
+    tenant: Arc<TenantState>,
+}
+
+impl std::fmt::Debug for Caller {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Caller")
+            .field("tenant", &self.tenant.name)
+            .field("role", &self.role)
+            .finish()
+    }
+}
+
+impl Caller {
+    /// The caller of a server without credentials (and of the embedded engine): the
+    /// default tenant, admin, no quotas.
+    pub fn open() -> Caller {
+        Caller {
+            role: Role::Admin,
+            tenant: Arc::new(TenantState::new(DEFAULT_TENANT, Quotas::default())),
+        }
+    }
+
+    /// The caller's tenant.
+    pub fn tenant(&self) -> &str {
+        &self.tenant.name
+    }
+
+    /// The caller's role.
+    pub fn role(&self) -> Role {
+        self.role
+    }
+
+    /// The tenant's quota of tasks, if any.
+    pub fn max_tasks(&self) -> Option<usize> {
+        self.tenant.quotas.read().max_tasks
+    }
+
+    /// Takes one of the tenant's open-stream slots for as long as the returned guard
+    /// lives; `RESOURCE_EXHAUSTED` when the tenant has `max_open_streams` open.
+    pub fn open_stream(&self) -> Result<StreamSlot, Error> {
+        let max = self.tenant.quotas.read().max_open_streams;
+        let open = &self.tenant.open_streams;
+        let took = open.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| match max {
+            Some(m) if n >= m => None,
+            _ => Some(n + 1),
+        });
+        match took {
+            Ok(_) => Ok(StreamSlot(self.tenant.clone())),
+            Err(_) => Err(Error::ResourceExhausted(format!(
+                "stream quota reached: tenant {:?} may have at most max_open_streams = {} Shape streams open",
+                self.tenant.name,
+                max.unwrap_or_default()
+            ))),
+        }
+    }
+
+    /// Charges `entries` step entries to the tenant's steps-per-second bucket;
+    /// `RESOURCE_EXHAUSTED` (nothing charged) when it does not hold that many.
+    pub fn take_steps(&self, entries: usize) -> Result<(), Error> {
+        let Some(rate) = self.tenant.quotas.read().max_steps_per_second else {
+            return Ok(());
+        };
+        let entries = entries as u64;
+        let over = |why: &str| {
+            Err(Error::ResourceExhausted(format!(
+                "step quota: tenant {:?} may shape at most max_steps_per_second = {rate} entries per second; {why}",
+                self.tenant.name
+            )))
+        };
+        if entries > rate {
+            return over(&format!(
+                "a batch of {entries} entries can never fit: send smaller batches"
+            ));
+        }
+        if !self
+            .tenant
+            .bucket
+            .lock()
+            .take(entries, rate, Instant::now())
+        {
+            return over("this batch is over it: slow down and reconnect");
+        }
+        Ok(())
+    }
+}
+
+/// One of a tenant's open-stream slots, released when dropped.
+pub struct StreamSlot(Arc<TenantState>);
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        self.0.open_streams.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// A tenant's quotas and usage; lives across key file reloads.
+struct TenantState {
+    name: String,
+    quotas: RwLock<Quotas>,
+    open_streams: AtomicUsize,
+    bucket: Mutex<Bucket>,
+}
+
+/// A token bucket holding at most one second's worth of steps.
+struct Bucket {
+    tokens: f64,
+    at: Instant,
+}
+
+impl Bucket {
+    /// Refills the bucket for the time since the last call at `rate` tokens per second
+    /// (up to `rate`), then takes `n` tokens if it holds them.
+    fn take(&mut self, n: u64, rate: u64, now: Instant) -> bool {
+        let rate = rate as f64;
+        let refill = now.saturating_duration_since(self.at).as_secs_f64() * rate;
+        self.tokens = (self.tokens + refill).min(rate);
+        self.at = now;
+        if self.tokens < n as f64 {
+            return false;
+        }
+        self.tokens -= n as f64;
+        true
+    }
+}
+
+impl TenantState {
+    fn new(name: &str, quotas: Quotas) -> TenantState {
+        TenantState {
+            name: name.to_string(),
+            bucket: Mutex::new(Bucket {
+                tokens: quotas.max_steps_per_second.unwrap_or(0) as f64,
+                at: Instant::now(),
+            }),
+            quotas: RwLock::new(quotas),
+            open_streams: AtomicUsize::new(0),
+        }
+    }
+}
+
+/// The known keys: the SHA-256 of each, and who it makes the caller.
+struct KeySet {
+    keys: Vec<([u8; 32], Caller)>,
+}
+
+/// The key file's keys and every tenant's quotas and usage.
+pub struct Access {
+    path: PathBuf,
+    keys: RwLock<Arc<KeySet>>,
+    tenants: DashMap<String, Arc<TenantState>>,
+}
+
+impl Access {
+    /// Reads the key file at `path`.
+    pub fn open(path: &Path) -> Result<Access, KeyFileError> {
+        let access = Access {
+            path: path.to_path_buf(),
+            keys: RwLock::new(Arc::new(KeySet { keys: Vec::new() })),
+            tenants: DashMap::new(),
+        };
+        access.install(KeyFile::read(path)?);
+        Ok(access)
+    }
+
+    /// Reads the key file again; on an error the keys in force stay. Returns the number
+    /// of keys and of tenants now in force.
+    pub fn reload(&self) -> Result<(usize, usize), KeyFileError> {
+        let file = KeyFile::read(&self.path)?;
+        Ok(self.install(file))
+    }
+
+    /// The key file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn install(&self, file: KeyFile) -> (usize, usize) {
+        let mut tenants = std::collections::BTreeSet::new();
+        for t in file
+            .keys
+            .iter()
+            .map(|k| &k.tenant)
+            .chain(file.quotas.keys())
+        {
+            tenants.insert(t.as_str());
+        }
+        for t in &tenants {
+            let quotas = file.quotas.get(*t).copied().unwrap_or_default();
+            match self.tenants.get(*t) {
+                Some(state) => *state.quotas.write() = quotas,
+                None => {
+                    self.tenants
+                        .insert(t.to_string(), Arc::new(TenantState::new(t, quotas)));
+                }
+            }
+        }
+        let keys = file
+            .keys
+            .iter()
+            .map(|k| {
+                let tenant = self
+                    .tenants
+                    .entry(k.tenant.clone())
+                    .or_insert_with(|| Arc::new(TenantState::new(&k.tenant, Quotas::default())))
+                    .clone();
+                (
+                    k.digest,
+                    Caller {
+                        role: k.role,
+                        tenant,
+                    },
+                )
+            })
+            .collect();
+        let set = KeySet { keys };
+        let counts = (set.keys.len(), tenants.len());
+        *self.keys.write() = Arc::new(set);
+        counts
+    }
+
+    /// Decides a request to `path` carrying the `authorization` metadata value
+    /// `authorization`: `Ok(None)` for a health check, `Ok(Some(caller))` for a key whose
+    /// role suffices; otherwise [`Error::Unauthenticated`] (no, a malformed or an unknown
+    /// key) or [`Error::PermissionDenied`] (a known key beyond its role). The key is compared by its SHA-256 with
+    /// every known hash, in constant time, and is neither kept nor logged.
+    pub fn authorize(
+        &self,
+        path: &str,
+        authorization: Option<&[u8]>,
+    ) -> Result<Option<Caller>, Error> {
+        let Some(needed) = needed_role(path) else {
+            return Ok(None);
+        };
+        let key = bearer(authorization)?;
+        let digest: [u8; 32] = Sha256::digest(key).into();
+        let set = self.keys.read().clone();
+        let mut found = subtle::Choice::from(0);
+        let mut index = 0u64;
+        for (i, (known, _)) in set.keys.iter().enumerate() {
+            let eq = known.ct_eq(&digest);
+            index.conditional_assign(&(i as u64), eq);
+            found |= eq;
+        }
+        if !bool::from(found) {
+            return Err(Error::Unauthenticated(
+                "unknown API key (the server's --api-keys file does not list it)".into(),
+            ));
+        }
+        let caller = set
+            .keys
+            .get(index as usize)
+            .map(|(_, c)| c.clone())
+            .ok_or_else(|| Error::Unauthenticated("unknown API key".into()))?;
+        if caller.role < needed {
+            return Err(Error::PermissionDenied(format!(
+                "the key of tenant {:?} has role {}; {path} needs role {} or above",
+                caller.tenant(),
+                caller.role.as_str(),
+                needed.as_str(),
+            )));
+        }
+        Ok(Some(caller))
+    }
+}
+
+/// The key of an `authorization: Bearer <key>` value.
+fn bearer(value: Option<&[u8]>) -> Result<&[u8], Error> {
+    let value = value.ok_or_else(|| {
+        Error::Unauthenticated(
+            "missing credentials: this server needs the metadata `authorization: Bearer <key>`"
+                .into(),
+        )
+    })?;
+    let scheme = b"bearer ";
+    let key = match value.get(..scheme.len()) {
+        Some(p) if p.eq_ignore_ascii_case(scheme) => &value[scheme.len()..],
+        _ => {
+            return Err(Error::Unauthenticated(
+                "the authorization metadata must be `Bearer <key>`".into(),
+            ))
+        }
+    };
+    let key = key.trim_ascii();
+    if key.is_empty() {
+        return Err(Error::Unauthenticated(
+            "the authorization metadata holds an empty key".into(),
+        ));
+    }
+    Ok(key)
+}
+
+/// A new random key: 32 bytes from the operating system's generator, as 64 hex digits
+/// prefixed `tamrm_` (so a leaked key is easy to recognise and search for).
+pub fn new_key() -> std::io::Result<String> {
+    use std::io::Read;
+    let mut bytes = [0u8; 32];
+    std::fs::File::open("/dev/urandom")?.read_exact(&mut bytes)?;
+    Ok(format!("tamrm_{}", hex(&bytes)))
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The SHA-256 of `key` in lowercase hex, as the key file wants it.
+pub fn hash_key(key: &[u8]) -> String {
+    hex(&Sha256::digest(key))
+}
+
+#[cfg(test)]
+mod tests;

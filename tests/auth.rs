@@ -1,0 +1,528 @@
+//! API keys, roles, tenants and quotas (SPEC §11) against a real server on 127.0.0.1:0:
+//! the credential matrix, tenant isolation on every RPC (Shape included), quotas, the
+//! key file read again on SIGHUP without dropping open streams, and data written before
+//! tenants existed.
+
+mod common;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use common::*;
+use tamrm::auth::{hash_key, Role, SHAPING_ROLES};
+use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Code, Request, Status};
+
+/// The key of (tenant, role) in these tests.
+fn key(tenant: &str, role: &str) -> String {
+    format!("key-of-{tenant}-{role}")
+}
+
+fn key_file(dir: &Path, keys: &[(&str, &str)], extra: &str) -> std::path::PathBuf {
+    let mut text = String::new();
+    for (tenant, role) in keys {
+        text += &format!(
+            "[[keys]]\ntenant = \"{tenant}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+            hash_key(key(tenant, role).as_bytes())
+        );
+    }
+    let path = dir.join("keys.toml");
+    std::fs::write(&path, text + extra).unwrap();
+    path
+}
+
+/// `msg` with `authorization: Bearer <key>` (or no credential).
+fn with<T>(key: Option<&str>, msg: T) -> Request<T> {
+    let mut r = Request::new(msg);
+    if let Some(k) = key {
+        r.metadata_mut()
+            .insert("authorization", format!("Bearer {k}").parse().unwrap());
+    }
+    r
+}
+
+fn task_id(id: &str) -> String {
+    id.to_string()
+}
+
+/// Opens a Shape stream with `key` on `task` and returns it with the opened task.
+async fn open(
+    c: &mut Client,
+    key: Option<&str>,
+    task: &str,
+    num_envs: u32,
+) -> Result<(mpsc::Sender<ShapeRequest>, tonic::Streaming<ShapeResponse>), Status> {
+    let (tx, rx) = mpsc::channel(8);
+    tx.send(ShapeRequest {
+        kind: Some(shape_request::Kind::Open(proto::Open {
+            task_id: task_id(task),
+            num_envs,
+            ..Default::default()
+        })),
+    })
+    .await
+    .unwrap();
+    let mut answers = c
+        .shape(with(key, ReceiverStream::new(rx)))
+        .await?
+        .into_inner();
+    match answers.message().await? {
+        Some(ShapeResponse {
+            kind: Some(shape_response::Kind::Opened(t)),
+        }) => {
+            assert_eq!(t.task_id, task);
+            Ok((tx, answers))
+        }
+        other => panic!("expected opened, got {other:?}"),
+    }
+}
+
+async fn step(
+    tx: &mpsc::Sender<ShapeRequest>,
+    answers: &mut tonic::Streaming<ShapeResponse>,
+    b: proto::StepBatch,
+) -> Result<proto::ShapedBatch, Status> {
+    let _ = tx
+        .send(ShapeRequest {
+            kind: Some(shape_request::Kind::Steps(b)),
+        })
+        .await;
+    match answers.message().await? {
+        Some(ShapeResponse {
+            kind: Some(shape_response::Kind::Shaped(s)),
+        }) => Ok(s),
+        other => panic!("expected shaped, got {other:?}"),
+    }
+}
+
+/// Calls the RPC `method` on task `task` with `key`; Ok(()) or the status.
+async fn call(c: &mut Client, method: &str, key: Option<&str>, task: &str) -> Result<(), Status> {
+    let id = task_id(task);
+    match method {
+        "CreateTask" => c
+            .create_task(with(
+                key,
+                proto::CreateTaskRequest {
+                    task_id: id,
+                    config: Some(discrete(2, 4, 1, 0, 1)),
+                },
+            ))
+            .await
+            .map(drop),
+        "GetTask" => c
+            .get_task(with(key, proto::GetTaskRequest { task_id: id }))
+            .await
+            .map(drop),
+        "ListTasks" => c
+            .list_tasks(with(key, proto::ListTasksRequest {}))
+            .await
+            .map(drop),
+        "DeleteTask" => c
+            .delete_task(with(key, proto::DeleteTaskRequest { task_id: id }))
+            .await
+            .map(drop),
+        "ResetPool" => c
+            .reset_pool(with(key, proto::ResetPoolRequest { task_id: id }))
+            .await
+            .map(drop),
+        "GetPool" => c
+            .get_pool(with(key, proto::GetPoolRequest { task_id: id }))
+            .await
+            .map(drop),
+        "AddTrajectory" => c
+            .add_trajectory(with(
+                key,
+                proto::AddTrajectoryRequest {
+                    task_id: id,
+                    trajectory: Some(dtraj(&[1, 0], 1.0)),
+                },
+            ))
+            .await
+            .map(drop),
+        "Shape" => {
+            let (tx, mut rx) = open(c, key, task, 1).await?;
+            step(&tx, &mut rx, batch(&[1], &[1.0], &[true]))
+                .await
+                .map(drop)
+        }
+        other => panic!("no such RPC {other}"),
+    }
+}
+
+const ROLES: [&str; 3] = ["reader", "writer", "admin"];
+
+#[tokio::test]
+async fn the_credential_matrix() {
+    let dir = tempfile::tempdir().unwrap();
+    let keys: Vec<(&str, &str)> = ROLES.iter().map(|r| ("team-a", *r)).collect();
+    let file = key_file(dir.path(), &keys, "");
+    let server = start_server(None, |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    let admin = key("team-a", "admin");
+
+    for (method, needed) in SHAPING_ROLES {
+        // Each call finds the task it acts on.
+        call(&mut c, "CreateTask", Some(&admin), "t").await.unwrap();
+        for bad in [None, Some("not-a-known-key")] {
+            let e = call(&mut c, method, bad, "t").await.unwrap_err();
+            assert_eq!(
+                e.code(),
+                Code::Unauthenticated,
+                "{method} with {bad:?}: {e:?}"
+            );
+        }
+        // A malformed header is refused too.
+        let mut r = Request::new(proto::ListTasksRequest {});
+        r.metadata_mut()
+            .insert("authorization", admin.parse().unwrap());
+        assert_eq!(
+            c.list_tasks(r).await.unwrap_err().code(),
+            Code::Unauthenticated
+        );
+        for role in ROLES {
+            call(&mut c, "CreateTask", Some(&admin), "t").await.unwrap();
+            let k = key("team-a", role);
+            let got = call(&mut c, method, Some(&k), "t").await;
+            let allowed = match role {
+                "reader" => Role::Reader,
+                "writer" => Role::Writer,
+                _ => Role::Admin,
+            } >= *needed;
+            if allowed {
+                assert!(got.is_ok(), "{method} as {role}: {got:?}");
+            } else {
+                let e = got.unwrap_err();
+                assert_eq!(
+                    e.code(),
+                    Code::PermissionDenied,
+                    "{method} as {role}: {e:?}"
+                );
+                assert!(e.message().contains("needs role"), "{}", e.message());
+                assert!(
+                    !e.message().contains(&k),
+                    "the key is echoed: {}",
+                    e.message()
+                );
+            }
+        }
+    }
+
+    // Health checks need no key.
+    use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{}", server.addr()))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let health = HealthClient::new(channel)
+        .check(HealthCheckRequest {
+            service: "tamrm.v1.Shaping".into(),
+        })
+        .await
+        .unwrap();
+    assert_eq!(health.into_inner().status, 1, "SERVING");
+    server.shutdown().await;
+}
+
+/// Every RPC of one tenant on a task id that only the other tenant has answers exactly
+/// what it answers for an id nobody has; same ids are separate tasks.
+#[tokio::test]
+async fn tenants_are_isolated_on_every_rpc() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = key_file(dir.path(), &[("team-a", "admin"), ("team-b", "admin")], "");
+    let server = start_server(None, |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    let (a, b) = (key("team-a", "admin"), key("team-b", "admin"));
+
+    // Both create "cartpole" with different configs: two tasks, no ALREADY_EXISTS.
+    let cfg_a = discrete(2, 4, 1, 0, 1);
+    let cfg_b = discrete(3, 2, 1, 0, 1);
+    for (k, cfg) in [(&a, &cfg_a), (&b, &cfg_b)] {
+        c.create_task(with(
+            Some(k),
+            proto::CreateTaskRequest {
+                task_id: "cartpole".into(),
+                config: Some(*cfg),
+            },
+        ))
+        .await
+        .unwrap();
+    }
+    call(&mut c, "CreateTask", Some(&a), "secret-of-a")
+        .await
+        .unwrap();
+    let mut seen = Vec::new();
+    for k in [&a, &b] {
+        let t = c
+            .get_task(with(
+                Some(k),
+                proto::GetTaskRequest {
+                    task_id: "cartpole".into(),
+                },
+            ))
+            .await
+            .unwrap()
+            .into_inner();
+        seen.push((t.task_id, t.config.unwrap().num_actions));
+    }
+    assert_eq!(seen, [("cartpole".into(), 2), ("cartpole".into(), 3)]);
+
+    let base = c.clone();
+    let list = |k: &str| {
+        let mut c = base.clone();
+        let k = k.to_string();
+        async move {
+            c.list_tasks(with(Some(&k), proto::ListTasksRequest {}))
+                .await
+                .unwrap()
+                .into_inner()
+                .tasks
+                .into_iter()
+                .map(|t| t.task_id)
+                .collect::<Vec<_>>()
+        }
+    };
+    assert_eq!(list(&a).await, ["cartpole", "secret-of-a"]);
+    assert_eq!(list(&b).await, ["cartpole"]);
+
+    // Shaping on a's cartpole changes a's pool only; the answer names only a's task.
+    let (tx, mut rx) = open(&mut c, Some(&a), "cartpole", 1).await.unwrap();
+    let shaped = step(&tx, &mut rx, batch(&[1], &[1.0], &[true]))
+        .await
+        .unwrap();
+    assert_eq!(shaped.pool_version, 1);
+    drop(tx);
+    let pool = |k: &str| {
+        let mut c = base.clone();
+        let k = k.to_string();
+        async move {
+            c.get_pool(with(
+                Some(&k),
+                proto::GetPoolRequest {
+                    task_id: "cartpole".into(),
+                },
+            ))
+            .await
+            .unwrap()
+            .into_inner()
+        }
+    };
+    assert_eq!(pool(&a).await.trajectories.len(), 1);
+    assert_eq!(pool(&b).await.trajectories.len(), 0);
+    assert_eq!(pool(&a).await.task_id, "cartpole");
+
+    // b on a's task: exactly what b gets for an id nobody has (the id differs only in
+    // the message's id, so compare with the id swapped).
+    for (method, _) in SHAPING_ROLES {
+        if matches!(*method, "CreateTask" | "ListTasks") {
+            continue;
+        }
+        let theirs = call(&mut c, method, Some(&b), "secret-of-a")
+            .await
+            .unwrap_err();
+        let nobodys = call(&mut c, method, Some(&b), "secret-of-z")
+            .await
+            .unwrap_err();
+        assert_eq!(theirs.code(), Code::NotFound, "{method}: {theirs:?}");
+        assert_eq!(
+            theirs.message().replace("secret-of-a", "ID"),
+            nobodys.message().replace("secret-of-z", "ID"),
+            "{method}"
+        );
+        // Nor does a near miss suggest a's id.
+        let near = call(&mut c, method, Some(&b), "secret-of-ab")
+            .await
+            .unwrap_err();
+        assert!(
+            !near.message().contains("did you mean"),
+            "{method}: {near:?}"
+        );
+    }
+    // ... and a's task is untouched by all of that.
+    assert_eq!(list(&a).await, ["cartpole", "secret-of-a"]);
+    let near = call(&mut c, "GetTask", Some(&a), "secret-of-ab")
+        .await
+        .unwrap_err();
+    assert!(
+        near.message().contains("did you mean \"secret-of-a\""),
+        "{near:?}"
+    );
+
+    // b deleting its cartpole leaves a's.
+    call(&mut c, "DeleteTask", Some(&b), "cartpole")
+        .await
+        .unwrap();
+    assert_eq!(list(&a).await, ["cartpole", "secret-of-a"]);
+    assert_eq!(pool(&a).await.trajectories.len(), 1);
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn quotas_answer_resource_exhausted() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = key_file(
+        dir.path(),
+        &[("q", "admin"), ("free", "admin")],
+        "[tenants.q]\nmax_tasks = 2\nmax_open_streams = 1\nmax_steps_per_second = 4\n",
+    );
+    let server = start_server(None, |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    let (q, free) = (key("q", "admin"), key("free", "admin"));
+
+    // Tasks.
+    call(&mut c, "CreateTask", Some(&q), "a").await.unwrap();
+    call(&mut c, "CreateTask", Some(&q), "b").await.unwrap();
+    call(&mut c, "CreateTask", Some(&q), "b").await.unwrap();
+    let e = call(&mut c, "CreateTask", Some(&q), "c").await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("max_tasks = 2"), "{}", e.message());
+    for id in ["a", "b", "c"] {
+        call(&mut c, "CreateTask", Some(&free), id).await.unwrap();
+    }
+
+    // Open streams: one at a time; the slot comes back when the stream ends.
+    let (tx, mut rx) = open(&mut c, Some(&q), "a", 4).await.unwrap();
+    let e = open(&mut c, Some(&q), "b", 1).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(
+        e.message().contains("max_open_streams = 1"),
+        "{}",
+        e.message()
+    );
+    let other = open(&mut c, Some(&free), "a", 1).await;
+    assert!(other.is_ok(), "another tenant's streams are not counted");
+
+    // Steps per second: 4 per second, a batch of 5 never fits; 4 then 4 more at once
+    // is over (the second needs a second of refill).
+    let four = || batch(&[0, 1, 0, 1], &[1.0; 4], &[false; 4]);
+    step(&tx, &mut rx, four()).await.unwrap();
+    let e = step(&tx, &mut rx, four()).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(
+        e.message().contains("max_steps_per_second = 4"),
+        "{}",
+        e.message()
+    );
+    drop(tx);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let (tx, mut rx) = loop {
+        match open(&mut c, Some(&q), "b", 5).await {
+            Ok(s) => break s,
+            Err(e) if e.code() == Code::ResourceExhausted && Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(20)).await
+            }
+            Err(e) => panic!("the stream slot did not come back: {e:?}"),
+        }
+    };
+    let five = batch(&[0; 5], &[1.0; 5], &[false; 5]);
+    let e = step(&tx, &mut rx, five).await.unwrap_err();
+    assert!(e.message().contains("can never fit"), "{}", e.message());
+    server.shutdown().await;
+}
+
+/// Tasks written before tenants existed (a server without keys) belong to the default
+/// tenant once keys are on, and no other tenant sees them.
+#[tokio::test]
+async fn data_from_before_tenants_is_the_default_tenants() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let server = start_server(Some(&data), |_| {}).await;
+    let mut c = connect(server.addr()).await;
+    create(&mut c, "legacy", discrete(2, 4, 1, 0, 1)).await;
+    add(&mut c, "legacy", dtraj(&[1, 1, 0], 3.0)).await;
+    server.shutdown().await;
+
+    let file = key_file(
+        dir.path(),
+        &[("default", "reader"), ("team-a", "admin")],
+        "",
+    );
+    let server = start_server(Some(&data), |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    let pool = c
+        .get_pool(with(
+            Some(&key("default", "reader")),
+            proto::GetPoolRequest {
+                task_id: "legacy".into(),
+            },
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(pool.trajectories.len(), 1);
+    let e = call(&mut c, "GetPool", Some(&key("team-a", "admin")), "legacy")
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::NotFound);
+    // A tenant's task written now is its own after a restart too.
+    call(&mut c, "CreateTask", Some(&key("team-a", "admin")), "mine")
+        .await
+        .unwrap();
+    server.shutdown().await;
+    let file = dir.path().join("keys.toml");
+    let server = start_server(Some(&data), |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    call(&mut c, "GetTask", Some(&key("team-a", "admin")), "mine")
+        .await
+        .unwrap();
+    let e = call(&mut c, "GetTask", Some(&key("default", "reader")), "mine")
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::NotFound);
+    server.shutdown().await;
+}
+
+/// The real binary reads its key file again on SIGHUP: a removed key stops working, a
+/// new one works, and a stream opened before keeps going.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_reloads_keys_without_dropping_streams() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = key_file(dir.path(), &[("t", "admin")], "");
+    let bin = Binary::start(&["--api-keys", file.to_str().unwrap()]);
+    let mut c = connect(bin.addr).await;
+    let old = key("t", "admin");
+    call(&mut c, "CreateTask", Some(&old), "x").await.unwrap();
+    let (tx, mut rx) = open(&mut c, Some(&old), "x", 1).await.unwrap();
+    step(&tx, &mut rx, batch(&[0], &[1.0], &[false]))
+        .await
+        .unwrap();
+
+    key_file(dir.path(), &[("t", "writer")], "");
+    let pid = bin.child.id().to_string();
+    assert!(std::process::Command::new("kill")
+        .args(["-HUP", &pid])
+        .status()
+        .unwrap()
+        .success());
+    let new = key("t", "writer");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let old_gone = call(&mut c, "GetTask", Some(&old), "x").await.is_err();
+        let new_works = call(&mut c, "GetTask", Some(&new), "x").await.is_ok();
+        if old_gone && new_works {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the key file was not read again");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // The new key has the writer role: no deletes.
+    let e = call(&mut c, "DeleteTask", Some(&new), "x")
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::PermissionDenied);
+    // The stream opened with the old key goes on, in the same episode.
+    let shaped = step(&tx, &mut rx, batch(&[1], &[1.0], &[true]))
+        .await
+        .unwrap();
+    assert_eq!(shaped.steps, [1]);
+    drop((tx, rx, c));
+    let (status, log) = bin.terminate();
+    assert!(status.success(), "{log}");
+    assert!(log.contains("API key file read again"), "{log}");
+    assert!(
+        !log.contains(&old) && !log.contains(&new),
+        "a key was logged: {log}"
+    );
+}
