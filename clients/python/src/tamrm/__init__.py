@@ -27,11 +27,13 @@ from tamrm._errors import (
     DeadlineExceeded,
     FailedPrecondition,
     InvalidArgument,
+    PermissionDenied,
     ResourceExhausted,
     SessionClosed,
     StatusCode,
     TamrmError,
     TaskNotFound,
+    Unauthenticated,
     Unavailable,
 )
 from tamrm._server import LocalServer, ServerStartError, find_binary, local_server
@@ -63,6 +65,8 @@ __all__ = [
     "AlreadyExists",
     "Client",
     "DeadlineExceeded",
+    "PermissionDenied",
+    "Unauthenticated",
     "Engine",
     "FailedPrecondition",
     "InvalidArgument",

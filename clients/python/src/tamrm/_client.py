@@ -92,9 +92,42 @@ _T = TypeVar("_T")
 
 
 def _rebuild_client(
-    target: str, timeout: float | None, metadata: Sequence[tuple[str, str]] | None
+    target: str,
+    timeout: float | None,
+    metadata: Sequence[tuple[str, str]] | None,
+    api_key: str | None = None,
 ) -> Client:
-    return Client(target, timeout=timeout, metadata=metadata)
+    return Client(target, timeout=timeout, metadata=metadata, api_key=api_key)
+
+
+def resolve_api_key(api_key: str | None) -> str | None:
+    """The API key to send: ``api_key``, else ``$TAMRM_API_KEY``, else none.
+
+    Raises:
+        ValueError: The key is empty or cannot travel in a header (blanks, control
+            characters or non-ASCII).
+    """
+    key = api_key if api_key is not None else os.environ.get("TAMRM_API_KEY") or None
+    if key is None:
+        return None
+    source = "api_key" if api_key is not None else "api_key (from TAMRM_API_KEY)"
+    if not key or not all(33 <= ord(c) <= 126 for c in key):
+        raise ValueError(
+            f"{source}: an API key is a non-empty string of printable ASCII without blanks"
+        )
+    return key
+
+
+def auth_metadata(
+    metadata: Sequence[tuple[str, str]] | None, api_key: str | None
+) -> list[tuple[str, str]]:
+    """``metadata`` plus ``authorization: Bearer <api_key>`` when there is a key."""
+    out = list(metadata or ())
+    if api_key is not None:
+        if any(k.lower() == "authorization" for k, _ in out):
+            raise ValueError("api_key: metadata already holds an authorization header")
+        out.append(("authorization", f"Bearer {api_key}"))
+    return out
 
 
 def _response_types() -> dict[str, type[Message]]:
@@ -256,7 +289,10 @@ class Client(TaskCalls, Closing):
         target: The server address, ``host:port`` (surrounding whitespace is ignored).
             Default: the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
         timeout: Deadline in seconds of each unary call (``None``: no deadline).
-        metadata: Metadata (e.g. an authorization header) sent with every call.
+        metadata: Metadata sent with every call.
+        api_key: The API key of a server started with ``--api-keys``, sent as
+            ``authorization: Bearer <key>`` with every call. Default: the
+            ``TAMRM_API_KEY`` environment variable, else none.
     """
 
     def __init__(
@@ -265,20 +301,23 @@ class Client(TaskCalls, Closing):
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Sequence[tuple[str, str]] | None = None,
+        api_key: str | None = None,
     ) -> None:
         self.target = parse_target(target)
         self.timeout = timeout
         self._metadata = tuple(metadata) if metadata else None
+        self._api_key = resolve_api_key(api_key)
+        headers = auth_metadata(self._metadata, self._api_key)
         self._transport: _native.Channel
         try:
-            self._transport = _native.Channel(self.target, list(self._metadata or ()))
+            self._transport = _native.Channel(self.target, headers)
         except _native.StatusError as exc:
             raise from_native(exc) from None
 
     def __reduce__(self) -> tuple[Any, ...]:
         # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
         # AsyncVectorEnv worker) opens its own connection.
-        return (_rebuild_client, (self.target, self.timeout, self._metadata))
+        return (_rebuild_client, (self.target, self.timeout, self._metadata, self._api_key))
 
     def __deepcopy__(self, memo: dict[int, object]) -> Client:
         # A handle on a connection, like the sessions: deep copies are the same client.

@@ -115,6 +115,24 @@ class DeadlineExceeded(TamrmError):
     code = StatusCode.DEADLINE_EXCEEDED
 
 
+class Unauthenticated(TamrmError):
+    """The server needs an API key and got none, or an unknown one (``UNAUTHENTICATED``).
+
+    Pass ``api_key=`` or set ``TAMRM_API_KEY``.
+    """
+
+    code = StatusCode.UNAUTHENTICATED
+
+
+class PermissionDenied(TamrmError):
+    """The API key's role does not allow this call (``PERMISSION_DENIED``).
+
+    Readers may only read; writers may not delete tasks or reset pools.
+    """
+
+    code = StatusCode.PERMISSION_DENIED
+
+
 class SessionClosed(TamrmError):
     """A session was used after it was closed or after its stream failed.
 
@@ -132,6 +150,8 @@ _BY_CODE: dict[StatusCode, type[TamrmError]] = {
         FailedPrecondition,
         Unavailable,
         DeadlineExceeded,
+        Unauthenticated,
+        PermissionDenied,
     )
     if cls.code is not None
 }

@@ -185,6 +185,8 @@ class Client(AsyncClosing):
             ``127.0.0.1:50051``); see :class:`tamrm.Client`.
         timeout: Deadline in seconds of each unary call (``None``: no deadline).
         metadata: Metadata sent with every call.
+        api_key: The server's API key (default: ``$TAMRM_API_KEY``); see
+            :class:`tamrm.Client`.
     """
 
     def __init__(
@@ -193,8 +195,9 @@ class Client(AsyncClosing):
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Sequence[tuple[str, str]] | None = None,
+        api_key: str | None = None,
     ) -> None:
-        self._sync = _SyncClient(target, timeout=timeout, metadata=metadata)
+        self._sync = _SyncClient(target, timeout=timeout, metadata=metadata, api_key=api_key)
         self.target = self._sync.target
         self.timeout = timeout
 
@@ -241,13 +244,16 @@ class Client(AsyncClosing):
         self._sync.close()
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_rebuild, (self.target, self.timeout, self._sync._metadata))
+        return (_rebuild, (self.target, self.timeout, self._sync._metadata, self._sync._api_key))
 
     def __repr__(self) -> str:
         return f"<tamrm.aio.Client target={self.target!r}>"
 
 
 def _rebuild(
-    target: str, timeout: float | None, metadata: Sequence[tuple[str, str]] | None
+    target: str,
+    timeout: float | None,
+    metadata: Sequence[tuple[str, str]] | None,
+    api_key: str | None = None,
 ) -> Client:
-    return Client(target, timeout=timeout, metadata=metadata)
+    return Client(target, timeout=timeout, metadata=metadata, api_key=api_key)
