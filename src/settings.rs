@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
+use crate::server::tls::{HealthcheckTls, TlsFiles};
 
 /// Default listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
@@ -41,6 +42,9 @@ pub struct HealthcheckArgs {
     /// Seconds to wait for the answer.
     #[arg(long, default_value_t = 3)]
     pub timeout_secs: u64,
+    /// TLS towards the server (see `docs/deployment.md`).
+    #[command(flatten)]
+    pub tls: HealthcheckTls,
 }
 
 impl HealthcheckArgs {
@@ -90,6 +94,10 @@ pub struct ServeArgs {
     /// Seconds to wait for open streams at shutdown before exiting anyway [default: 30].
     #[arg(long, env = "TAMRM_SHUTDOWN_GRACE_SECS")]
     pub shutdown_grace_secs: Option<u64>,
+    /// TLS certificate, key and client CA (each also `TAMRM_TLS_<NAME>` and `[tls]
+    /// <name>` in the file).
+    #[command(flatten)]
+    pub tls: TlsFiles,
 }
 
 /// The config file: every key optional.
@@ -107,6 +115,8 @@ pub struct FileSettings {
     pub shutdown_grace_secs: Option<u64>,
     /// Limits (any subset).
     pub limits: Option<LimitsLayer>,
+    /// TLS files (any subset).
+    pub tls: Option<TlsFiles>,
 }
 
 /// Resolved server settings.
@@ -122,6 +132,8 @@ pub struct Settings {
     pub limits: Limits,
     /// Shutdown grace period, seconds.
     pub shutdown_grace_secs: u64,
+    /// TLS files (TLS off when none).
+    pub tls: TlsFiles,
 }
 
 impl Default for Settings {
@@ -132,6 +144,7 @@ impl Default for Settings {
             port_file: None,
             limits: Limits::default(),
             shutdown_grace_secs: 30,
+            tls: TlsFiles::default(),
         }
     }
 }
@@ -150,6 +163,7 @@ impl Settings {
             s.apply_file(&read_file(path)?);
         }
         s.apply_args(args);
+        s.tls.check().map_err(SettingsError)?;
         if s.limits.max_message_bytes < 1024 {
             return Err(SettingsError(format!(
                 "max_message_bytes must be at least 1024, got {}",
@@ -171,6 +185,9 @@ impl Settings {
         if let Some(l) = &f.limits {
             self.limits.apply(l);
         }
+        if let Some(t) = &f.tls {
+            self.tls.apply(t);
+        }
     }
 
     fn apply_args(&mut self, a: &ServeArgs) {
@@ -183,6 +200,7 @@ impl Settings {
         }
         set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
         self.limits.apply(&a.limits);
+        self.tls.apply(&a.tls);
     }
 }
 
