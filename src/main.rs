@@ -40,7 +40,11 @@ fn main() -> std::process::ExitCode {
             Ok(s) => s,
             Err(e) => {
                 tracing::error!("{e}");
-                return std::process::ExitCode::FAILURE;
+                // A bad TLS file is a settings error, like the others: exit 2.
+                return match e {
+                    tamrm::server::StartError::Tls(_) => std::process::ExitCode::from(2),
+                    _ => std::process::ExitCode::FAILURE,
+                };
             }
         };
         wait_for_signal().await;
@@ -66,7 +70,14 @@ fn healthcheck(args: &HealthcheckArgs) -> std::process::ExitCode {
         }
     };
     let timeout = std::time::Duration::from_secs(args.timeout_secs);
-    match runtime.block_on(tamrm::server::healthcheck(args.target(), timeout)) {
+    let tls = match args.tls.client_config() {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("unhealthy: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(tamrm::server::healthcheck(args.target(), tls, timeout)) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("unhealthy: {e}");

@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
+use crate::server::tls::{HealthcheckTls, TlsFiles};
 
 /// Default listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
@@ -58,6 +59,9 @@ pub struct HealthcheckArgs {
     /// Seconds to wait for the answer.
     #[arg(long, default_value_t = 3)]
     pub timeout_secs: u64,
+    /// TLS towards the server (see `docs/deployment.md`).
+    #[command(flatten)]
+    pub tls: HealthcheckTls,
 }
 
 impl HealthcheckArgs {
@@ -112,6 +116,10 @@ pub struct ServeArgs {
     /// `authorization: Bearer <key>`; read again on SIGHUP. Without it the server is open.
     #[arg(long, env = "TAMRM_API_KEYS", value_name = "FILE")]
     pub api_keys: Option<PathBuf>,
+    /// TLS certificate, key and client CA (each also `TAMRM_TLS_<NAME>` and `[tls]
+    /// <name>` in the file).
+    #[command(flatten)]
+    pub tls: TlsFiles,
 }
 
 /// The config file: every key optional.
@@ -131,6 +139,8 @@ pub struct FileSettings {
     pub limits: Option<LimitsLayer>,
     /// API key file.
     pub api_keys: Option<PathBuf>,
+    /// TLS files (any subset).
+    pub tls: Option<TlsFiles>,
 }
 
 /// Resolved server settings.
@@ -148,6 +158,8 @@ pub struct Settings {
     pub shutdown_grace_secs: u64,
     /// API key file, or `None` for an open server.
     pub api_keys: Option<PathBuf>,
+    /// TLS files (TLS off when none).
+    pub tls: TlsFiles,
 }
 
 impl Default for Settings {
@@ -159,6 +171,7 @@ impl Default for Settings {
             limits: Limits::default(),
             shutdown_grace_secs: 30,
             api_keys: None,
+            tls: TlsFiles::default(),
         }
     }
 }
@@ -177,6 +190,7 @@ impl Settings {
             s.apply_file(&read_file(path)?);
         }
         s.apply_args(args);
+        s.tls.check().map_err(SettingsError)?;
         if s.limits.max_message_bytes < 1024 {
             return Err(SettingsError(format!(
                 "max_message_bytes must be at least 1024, got {}",
@@ -201,6 +215,9 @@ impl Settings {
         if let Some(l) = &f.limits {
             self.limits.apply(l);
         }
+        if let Some(t) = &f.tls {
+            self.tls.apply(t);
+        }
     }
 
     fn apply_args(&mut self, a: &ServeArgs) {
@@ -216,6 +233,7 @@ impl Settings {
             self.api_keys.clone_from(&a.api_keys);
         }
         self.limits.apply(&a.limits);
+        self.tls.apply(&a.tls);
     }
 }
 

@@ -198,3 +198,31 @@ fn every_limit_is_documented_with_its_flag_and_variable() {
         }
     }
 }
+
+#[test]
+fn every_flag_of_serve_and_healthcheck_is_documented_with_its_variable() {
+    use clap::CommandFactory;
+    let doc =
+        fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/configuration.md"))
+            .unwrap();
+    let cli = tamrm::settings::Cli::command();
+    for sub in ["serve", "healthcheck"] {
+        let command = cli.find_subcommand(sub).unwrap();
+        for arg in command.get_arguments() {
+            let Some(long) = arg.get_long() else { continue };
+            if long == "help" || long == "version" {
+                continue;
+            }
+            let mut needles = vec![format!("--{long}")];
+            if let Some(env) = arg.get_env() {
+                needles.push(env.to_string_lossy().into_owned());
+            }
+            for needle in needles {
+                assert!(
+                    doc.contains(&needle),
+                    "docs/configuration.md does not mention {needle} (tamrm {sub})"
+                );
+            }
+        }
+    }
+}

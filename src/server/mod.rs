@@ -2,6 +2,7 @@
 //! with graceful shutdown.
 
 mod linger;
+pub mod tls;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -44,6 +45,9 @@ pub enum StartError {
     /// The reflection service could not be built from the embedded descriptors.
     #[error("cannot build the reflection service: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    /// A TLS file is missing, unreadable or not usable PEM (a settings error).
+    #[error("{0}")]
+    Tls(#[from] tls::TlsError),
 }
 
 /// A running server.
@@ -84,6 +88,8 @@ impl RunningServer {
 
 /// Opens the store, restores every task, binds and starts serving.
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
+    // Before anything else: a bad certificate must not leave a half-started server.
+    let tls = tls::server_config(&settings.tls)?;
     let store: Arc<dyn Store> = match &settings.data_dir {
         Some(dir) => Arc::new(DiskStore::open(dir)?),
         None => Arc::new(MemoryStore::new()),
@@ -139,7 +145,17 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let closing = TaskTracker::new();
     let tracker = closing.clone();
     let keepalive = settings.limits.keepalive_secs;
-    let router = Server::builder()
+    let builder = match tls {
+        Some(config) => Server::builder()
+            .tls_config(config)
+            .map_err(|e| tls::TlsError {
+                what: "TLS configuration",
+                file: settings.tls.cert.clone().unwrap_or_default(),
+                problem: tls::chain(&e),
+            })?,
+        None => Server::builder(),
+    };
+    let router = builder
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(20)))
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
@@ -159,6 +175,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
             .serve_with_incoming_shutdown(linger::incoming(listener, tracker), signal)
             .await
     });
+    tracing::info!("{}", settings.tls.describe());
     tracing::info!("listening on {addr}");
     if let Some(path) = &settings.port_file {
         let tmp = path.with_extension("tmp");
@@ -217,23 +234,42 @@ fn open_access(settings: &Settings, addr: SocketAddr) -> Result<Option<Arc<Acces
 }
 
 /// Asks the server at `addr` whether it serves `tamrm.v1.Shaping` (grpc.health.v1),
-/// within `timeout`. `Ok` when it answers SERVING; otherwise why not.
-pub async fn healthcheck(addr: SocketAddr, timeout: Duration) -> Result<(), String> {
+/// within `timeout`, over TLS when `tls` is given. `Ok` when it answers SERVING;
+/// otherwise why not.
+pub async fn healthcheck(
+    addr: SocketAddr,
+    tls: Option<tonic::transport::ClientTlsConfig>,
+    timeout: Duration,
+) -> Result<(), String> {
     use tonic_health::pb::health_check_response::ServingStatus;
     use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
     let check = async {
-        let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
-            .map_err(|e| e.to_string())?
+        let plaintext = tls.is_none();
+        let scheme = if plaintext { "http" } else { "https" };
+        let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{addr}"))
+            .map_err(|e| e.to_string())?;
+        if let Some(config) = tls {
+            endpoint = endpoint.tls_config(config).map_err(|e| tls::chain(&e))?;
+        }
+        let channel = endpoint
             .connect()
             .await
-            .map_err(|e| format!("cannot connect to {addr}: {e}"))?;
+            .map_err(|e| format!("cannot connect to {addr}: {}", tls::chain(&e)))?;
         let service = <ShapingServer<ShapingService> as tonic::server::NamedService>::NAME;
         let answer = HealthClient::new(channel)
             .check(HealthCheckRequest {
                 service: service.to_string(),
             })
             .await
-            .map_err(|s| format!("{addr}: {}", s.message()))?;
+            .map_err(|s| {
+                let why = tls::status_chain(&s);
+                let hint = if plaintext && why.contains("h2 protocol error") {
+                    " (does the server have TLS on? then give --tls-ca or TAMRM_TLS_CA)"
+                } else {
+                    ""
+                };
+                format!("{addr}: {why}{hint}")
+            })?;
         match answer.into_inner().status() {
             ServingStatus::Serving => Ok(()),
             other => Err(format!("{addr}: {service} is {}", other.as_str_name())),

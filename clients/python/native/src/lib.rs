@@ -12,6 +12,7 @@
 
 mod columns;
 mod engine;
+mod options;
 mod remote;
 mod stream;
 mod tracker;
@@ -76,6 +77,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("StatusError", m.py().get_type::<StatusError>())?;
     m.add_class::<engine::Engine>()?;
     m.add_class::<remote::Channel>()?;
+    m.add_class::<options::ChannelOptions>()?;
     m.add_class::<stream::NativeStream>()?;
     Ok(())
 }

@@ -1,8 +1,7 @@
 //! `tamrm.Client`'s transport: a tonic channel to a server, unary calls on serialized
 //! messages, and `Shape` streams whose round trips run with the GIL released.
 
-use std::str::FromStr;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use prost::Message;
 use pyo3::exceptions::PyValueError;
@@ -13,11 +12,12 @@ use tamrm::proto::{self, shape_request, shape_response};
 use tokio::runtime::Runtime;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::metadata::{AsciiMetadataKey, AsciiMetadataValue, MetadataMap};
+use tonic::metadata::MetadataMap;
 use tonic::transport::{Channel as TonicChannel, Endpoint};
 use tonic::{Code, Request, Status, Streaming};
 
 use crate::columns::{Answer, Prepared};
+use crate::options::ChannelOptions;
 use crate::stream::{NativeStream, StepError, Transport};
 use crate::tracker::Tracker;
 use crate::{runtime, status, status_error};
@@ -36,6 +36,10 @@ pub struct Channel {
     channel: TonicChannel,
     client: ShapingClient<TonicChannel>,
     metadata: MetadataMap,
+    /// Whether the channel speaks TLS (for the hints of connection errors).
+    tls: bool,
+    /// How long a session's step resumes a broken stream.
+    resume_timeout: Option<Duration>,
     rt: &'static Runtime,
 }
 
@@ -89,6 +93,89 @@ fn unreachable(target: &str, e: impl std::fmt::Display) -> Status {
     Status::unavailable(format!("could not reach {target}: {e}"))
 }
 
+/// Words of the errors rustls and hyper give when a TLS handshake fails, or when
+/// plaintext HTTP/2 meets a TLS server.
+const TLS_WORDS: [&str; 6] = [
+    "certificate",
+    "tls",
+    "handshake",
+    "alert",
+    "corrupt message",
+    "invalidcontenttype",
+];
+const CLOSED_WORDS: [&str; 4] = ["connection closed", "reset", "broken pipe", "eof"];
+const PLAINTEXT_TO_TLS_WORDS: [&str; 6] = [
+    "frame",
+    "protocol",
+    "connection closed",
+    "reset",
+    "broken pipe",
+    "eof",
+];
+
+/// Whether the status's source chain holds tonic's `TimeoutExpired`.
+fn expired(s: &Status) -> bool {
+    let mut source = std::error::Error::source(s);
+    while let Some(e) = source {
+        if e.is::<tonic::TimeoutExpired>() {
+            return true;
+        }
+        source = e.source();
+    }
+    false
+}
+
+/// A status made by the transport (not the server's answer) with the cause that tonic
+/// keeps in its source chain spelled out, saying when it is TLS that failed (or was
+/// expected): a wrong CA or a plaintext/TLS mismatch reads as such, not as a bare
+/// "transport error".
+fn transport_error(target: &str, tls: bool, s: Status) -> Status {
+    if std::error::Error::source(&s).is_none() || s.code() == Code::DeadlineExceeded {
+        // The server's own answer, or our deadline: as it is.
+        return s;
+    }
+    let detail = tamrm::server::tls::status_chain(&s);
+    if expired(&s) {
+        // The call's deadline passed in tonic's timeout layer (it says CANCELLED).
+        return Status::deadline_exceeded(format!(
+            "no answer from {target} within the deadline: {detail}"
+        ));
+    }
+    let lower = detail.to_lowercase();
+    let message = if tls && TLS_WORDS.iter().any(|w| lower.contains(w)) {
+        format!(
+            "TLS handshake with {target} failed: {detail} (check root_certificates, \
+             tls_server_name and the client certificate, and that the server has TLS on)"
+        )
+    } else if tls && CLOSED_WORDS.iter().any(|w| lower.contains(w)) {
+        // TLS 1.3: a refused client certificate reaches the client after its handshake
+        // finished, often as a plain close.
+        format!(
+            "connection to {target} closed: {detail} (over TLS: a server with mutual TLS \
+             closes connections without a client certificate it accepts; check \
+             certificate_chain and private_key)"
+        )
+    } else if !tls
+        && !lower.contains("refused")
+        && PLAINTEXT_TO_TLS_WORDS.iter().any(|w| lower.contains(w))
+    {
+        format!(
+            "connection to {target} failed: {detail} (if the server has TLS on, connect \
+             with tls=True or root_certificates=)"
+        )
+    } else {
+        format!("could not reach {target}: {detail}")
+    };
+    // The transport's own codes for a failed connection (UNKNOWN, CANCELLED, INTERNAL
+    // for an HTTP/2 protocol error) say less
+    // than UNAVAILABLE, which a caller retries on.
+    let code = match s.code() {
+        Code::Unknown | Code::Cancelled | Code::Internal => Code::Unavailable,
+        other => other,
+    };
+    Status::new(code, message)
+}
+
 async fn unary(
     mut c: ShapingClient<TonicChannel>,
     method: &str,
@@ -118,27 +205,16 @@ async fn unary(
 
 #[pymethods]
 impl Channel {
-    /// A lazily connecting channel to `target` (`host:port`), with `metadata` sent on
-    /// every call.
+    /// A lazily connecting channel to `target` (`host:port` or `unix:PATH`) with
+    /// `options` (TLS, keepalive, metadata sent on every call).
     #[new]
-    #[pyo3(signature = (target, metadata=Vec::new()))]
-    fn new(target: &str, metadata: Vec<(String, String)>) -> PyResult<Channel> {
+    #[pyo3(signature = (target, options=None))]
+    fn new(target: &str, options: Option<ChannelOptions>) -> PyResult<Channel> {
         let rt = runtime()?;
+        let options = options.unwrap_or_default();
         let (authority, unix) = split_target(target)?;
-        let endpoint = Endpoint::from_shared(format!("http://{authority}"))
-            .map_err(|e| PyValueError::new_err(format!("target {target:?}: {e}")))?
-            .tcp_nodelay(true)
-            .connect_timeout(Duration::from_secs(10))
-            .http2_keep_alive_interval(Duration::from_secs(30))
-            .keep_alive_while_idle(false);
-        let mut md = MetadataMap::new();
-        for (k, v) in metadata {
-            let key = AsciiMetadataKey::from_str(&k)
-                .map_err(|e| PyValueError::new_err(format!("metadata key {k:?}: {e}")))?;
-            let value = AsciiMetadataValue::from_str(&v)
-                .map_err(|e| PyValueError::new_err(format!("metadata value of {k:?}: {e}")))?;
-            md.append(key, value);
-        }
+        let endpoint = options.endpoint(target, &authority)?;
+        let md = options.metadata_map()?;
         // The lazy channels spawn on the current runtime.
         let _enter = rt.enter();
         let channel = match &unix {
@@ -161,8 +237,16 @@ impl Channel {
             client: client(channel.clone()),
             channel,
             metadata: md,
+            tls: options.uses_tls(),
+            resume_timeout: options.resume_timeout(),
             rt,
         })
+    }
+
+    /// Whether the channel speaks TLS.
+    #[getter]
+    fn tls(&self) -> bool {
+        self.tls
     }
 
     /// One unary call on serialized messages; `timeout` in seconds (`None`: none).
@@ -189,7 +273,7 @@ impl Channel {
                 )
             })?),
         };
-        let (c, md, rt) = (self.client.clone(), &self.metadata, self.rt);
+        let (c, md, rt, tls) = (self.client.clone(), &self.metadata, self.rt, self.tls);
         let target = self.endpoint.uri().to_string();
         let out = py
             .detach(|| {
@@ -209,38 +293,52 @@ impl Channel {
                     }
                 })
             })
-            .map_err(|s| status_error(&s))?;
+            .map_err(|s| status_error(&transport_error(&target, tls, s)))?;
         Ok(PyBytes::new(py, &out))
     }
 
     /// Blocks until a connection to the server is established, up to `timeout` seconds.
+    /// A failed TLS handshake ends the wait at once: the server is there, and retrying
+    /// with the same certificates cannot succeed.
     fn wait_ready(&self, py: Python<'_>, timeout: f64) -> PyResult<()> {
-        let (endpoint, rt) = (self.endpoint.clone(), self.rt);
+        let (endpoint, rt, tls) = (self.endpoint.clone(), self.rt, self.tls);
+        let target = self.endpoint.uri().to_string();
         py.detach(|| {
             rt.block_on(async {
                 let wait = Duration::try_from_secs_f64(timeout).unwrap_or(Duration::ZERO);
                 let deadline = tokio::time::Instant::now() + wait;
+                let mut last = None;
                 loop {
                     let left = deadline.saturating_duration_since(tokio::time::Instant::now());
                     match tokio::time::timeout(left, endpoint.connect()).await {
                         Ok(Ok(_)) => return Ok(()),
-                        Ok(Err(_)) if !left.is_zero() => {
+                        Ok(Err(e)) => {
+                            let status =
+                                transport_error(&target, tls, Status::from_error(e.into()));
+                            if status.message().starts_with("TLS handshake") {
+                                return Err(status);
+                            }
+                            last = Some(status);
+                            if left.is_zero() {
+                                break;
+                            }
                             tokio::time::sleep(Duration::from_millis(50).min(left)).await;
                         }
-                        _ => return Err(()),
+                        Err(_) => break,
                     }
                     if tokio::time::Instant::now() >= deadline {
-                        return Err(());
+                        break;
                     }
                 }
+                let why = last
+                    .map(|s| format!(" ({})", s.message()))
+                    .unwrap_or_default();
+                Err(Status::unavailable(format!(
+                    "could not connect to {target} in {timeout}s{why}"
+                )))
             })
         })
-        .map_err(|()| {
-            status(
-                Code::Unavailable,
-                format!("could not connect to {} in {timeout}s", self.endpoint.uri()),
-            )
-        })
+        .map_err(|s| status_error(&s))
     }
 
     /// Whether `grpc.health.v1.Health/Check` answers SERVING for `service` within
@@ -288,9 +386,11 @@ impl Channel {
             client: self.client.clone(),
             metadata: self.metadata.clone(),
             target: self.endpoint.uri().to_string(),
+            tls: self.tls,
             task_id: task_id.to_string(),
             num_envs,
             client_id: client_id.to_string(),
+            resume_timeout: self.resume_timeout,
             rt: self.rt,
             tx: None,
             inbound: None,
@@ -312,9 +412,11 @@ pub(crate) struct RemoteStream {
     client: ShapingClient<TonicChannel>,
     metadata: MetadataMap,
     target: String,
+    tls: bool,
     task_id: String,
     num_envs: u32,
     client_id: String,
+    resume_timeout: Option<Duration>,
     rt: &'static Runtime,
     tx: Option<mpsc::Sender<proto::ShapeRequest>>,
     inbound: Option<Streaming<proto::ShapeResponse>>,
@@ -335,7 +437,7 @@ impl RemoteStream {
         let (tx, rx) = mpsc::channel(4);
         let mut client = self.client.clone();
         let req = request(ReceiverStream::new(rx), &self.metadata, None);
-        let target = self.target.clone();
+        let (target, tls) = (self.target.clone(), self.tls);
         let (inbound, first) = self.rt.block_on(async move {
             tx.send(open)
                 .await
@@ -343,12 +445,12 @@ impl RemoteStream {
             let mut inbound = client
                 .shape(req)
                 .await
-                .map_err(|s| connect_error(&target, s))?
+                .map_err(|s| connect_error(&target, tls, s))?
                 .into_inner();
             let first = inbound
                 .message()
                 .await
-                .map_err(|s| connect_error(&target, s))?;
+                .map_err(|s| connect_error(&target, tls, s))?;
             Ok::<_, Status>(((tx, inbound), first))
         })?;
         match first.and_then(|r| r.kind) {
@@ -374,7 +476,79 @@ impl RemoteStream {
     /// Sends one batch and waits for its answer. After a rejected batch
     /// (INVALID_ARGUMENT, nothing applied) the stream is re-opened with every episode of
     /// `tracker` resumed, so that the session goes on as if it had never been sent.
+    ///
+    /// When the stream breaks (the server went away, restarted, or answers UNAVAILABLE)
+    /// the step resumes (SPEC §9): it re-opens the stream with every episode of `tracker`
+    /// (the state before this batch) and the session's `client_id`, with exponential
+    /// backoff for up to `resume_timeout`, re-sends the batch and returns its answer as
+    /// if nothing had happened. The server commits no episode end twice for one
+    /// `client_id`, so a batch that was applied before its answer was lost is safe to
+    /// re-send.
     pub fn step(&mut self, batch: &Prepared, tracker: &Tracker) -> Result<Answer, StepError> {
+        let first = self.step_once(batch, tracker);
+        let Some(limit) = self.resume_timeout else {
+            return first;
+        };
+        let mut failure = match first {
+            Err(StepError::Status(s)) if resumable(&s) => s,
+            other => return other,
+        };
+        let deadline = Instant::now() + limit;
+        let mut pause = FIRST_PAUSE;
+        loop {
+            let now = Instant::now();
+            if now >= deadline {
+                self.close_now();
+                return Err(Status::unavailable(format!(
+                    "the session could not be resumed within resume_timeout_secs = {} ({}): {}",
+                    limit.as_secs_f64(),
+                    self.target,
+                    failure.message()
+                ))
+                .into());
+            }
+            self.pause(pause.min(deadline - now))?;
+            pause = (pause * 2).min(MAX_PAUSE);
+            match self.open(tracker) {
+                Ok(_) => {}
+                Err(s) if resumable(&s) => {
+                    failure = s;
+                    continue;
+                }
+                Err(s) => return Err(s.into()),
+            }
+            match self.step_once(batch, tracker) {
+                Err(StepError::Status(s)) if resumable(&s) => failure = s,
+                other => return other,
+            }
+        }
+    }
+
+    /// Waits `d` (letting Python handle a Ctrl-C meanwhile).
+    fn pause(&mut self, d: Duration) -> Result<(), StepError> {
+        let waited = self.rt.block_on(async {
+            let end = tokio::time::Instant::now() + d;
+            while tokio::time::Instant::now() < end {
+                tokio::time::sleep_until(end.min(tokio::time::Instant::now() + SIGNAL_CHECK))
+                    .await;
+                Python::attach(|py| py.check_signals())?;
+            }
+            Ok::<(), PyErr>(())
+        });
+        waited.map_err(|interrupt| {
+            self.close_now();
+            StepError::Interrupted(interrupt)
+        })
+    }
+
+    /// Drops the stream without waiting for the server.
+    fn close_now(&mut self) {
+        self.tx = None;
+        self.inbound = None;
+    }
+
+    /// One round trip on the current stream (see [`RemoteStream::step`]).
+    fn step_once(&mut self, batch: &Prepared, tracker: &Tracker) -> Result<Answer, StepError> {
         let (Some(tx), Some(inbound)) = (self.tx.as_ref(), self.inbound.as_mut()) else {
             return Err(Status::cancelled("the session is closed").into());
         };
@@ -444,8 +618,28 @@ impl RemoteStream {
     }
 }
 
-fn connect_error(target: &str, s: Status) -> Status {
-    if s.code() == Code::Unavailable || s.code() == Code::Unknown {
+/// The first wait before resuming a broken session; it doubles up to [`MAX_PAUSE`].
+const FIRST_PAUSE: Duration = Duration::from_millis(50);
+/// The longest wait between two attempts to resume.
+const MAX_PAUSE: Duration = Duration::from_secs(2);
+
+/// Whether a failed step is worth resuming: the server is unreachable or going away
+/// (UNAVAILABLE), or the connection broke under the stream (a transport error). Every
+/// answer of the server itself (a rejected batch, a deleted task, a quota) is final.
+fn resumable(s: &Status) -> bool {
+    match s.code() {
+        Code::Unavailable => true,
+        Code::Unknown | Code::Internal | Code::Cancelled => {
+            std::error::Error::source(s).is_some() || s.message().contains("h2 protocol error")
+        }
+        _ => false,
+    }
+}
+
+fn connect_error(target: &str, tls: bool, s: Status) -> Status {
+    if std::error::Error::source(&s).is_some() {
+        transport_error(target, tls, s)
+    } else if s.code() == Code::Unavailable || s.code() == Code::Unknown {
         unreachable(target, s.message())
     } else {
         s

@@ -20,7 +20,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from tamrm._client import DEFAULT_ADDRESS, DEFAULT_TIMEOUT, Client
+from tamrm._client import DEFAULT_ADDRESS, DEFAULT_TIMEOUT, Client, ConnectionOptions
 from tamrm._engine import Engine
 from tamrm._errors import (
     AlreadyExists,
@@ -64,6 +64,7 @@ __all__ = [
     "AddTrajectoryResult",
     "AlreadyExists",
     "Client",
+    "ConnectionOptions",
     "DeadlineExceeded",
     "PermissionDenied",
     "Unauthenticated",

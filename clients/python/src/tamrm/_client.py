@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import enum
+import functools
 import os
 import re
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypedDict, TypeVar
 
 import numpy.typing as npt
 from google.protobuf import message_factory
@@ -24,15 +27,64 @@ if TYPE_CHECKING:
 
 __all__ = [
     "ADDRESS_ENV",
+    "CLIENT_TIMEOUT",
     "DEFAULT_ADDRESS",
+    "DEFAULT_KEEPALIVE_SECS",
+    "DEFAULT_KEEPALIVE_TIMEOUT_SECS",
     "DEFAULT_TIMEOUT",
     "Client",
+    "ConnectionOptions",
+    "Pem",
     "TaskCalls",
+    "Timeout",
     "parse_target",
 ]
 
 #: Default deadline, in seconds, of every unary call (not of ``Shape`` streams).
 DEFAULT_TIMEOUT = 30.0
+
+#: Default interval, in seconds, of the client's HTTP/2 keepalive pings.
+DEFAULT_KEEPALIVE_SECS = 30.0
+
+#: Default time, in seconds, a keepalive ping may go unanswered before the connection
+#: is dropped.
+DEFAULT_KEEPALIVE_TIMEOUT_SECS = 20.0
+
+#: How long a session step keeps resuming a broken stream by default (seconds).
+DEFAULT_RESUME_TIMEOUT_SECS = 60.0
+
+
+class _ClientTimeout(enum.Enum):
+    TIMEOUT = "the client's timeout"
+
+
+#: The default of a call's ``timeout=``: the deadline given to the client.
+CLIENT_TIMEOUT = _ClientTimeout.TIMEOUT
+
+#: A call's deadline: seconds, ``None`` for none, or :data:`CLIENT_TIMEOUT`.
+Timeout = float | None | _ClientTimeout
+
+#: A PEM certificate or key: its contents as ``bytes``, or the path of a PEM file.
+Pem = bytes | str | os.PathLike[str]
+
+
+class ConnectionOptions(TypedDict, total=False):
+    """How a client connects, besides its address; the keywords of :class:`Client`.
+
+    Every key is optional; see :class:`Client` for what each means.
+    """
+
+    metadata: Sequence[tuple[str, str]] | None
+    tls: bool | None
+    root_certificates: Pem | None
+    certificate_chain: Pem | None
+    private_key: Pem | None
+    tls_server_name: str | None
+    keepalive_secs: float | None
+    keepalive_timeout_secs: float
+    api_key: str | None
+    resume_timeout_secs: float | None
+
 
 #: The environment variable holding the clients' default address.
 ADDRESS_ENV = "TAMRM_ADDRESS"
@@ -91,13 +143,8 @@ def parse_target(target: str | None) -> str:
 _T = TypeVar("_T")
 
 
-def _rebuild_client(
-    target: str,
-    timeout: float | None,
-    metadata: Sequence[tuple[str, str]] | None,
-    api_key: str | None = None,
-) -> Client:
-    return Client(target, timeout=timeout, metadata=metadata, api_key=api_key)
+def _rebuild_client(target: str, timeout: float | None, connection: ConnectionOptions) -> Client:
+    return Client(target, timeout=timeout, **connection)
 
 
 def resolve_api_key(api_key: str | None) -> str | None:
@@ -118,16 +165,67 @@ def resolve_api_key(api_key: str | None) -> str | None:
     return key
 
 
-def auth_metadata(
+def _auth_metadata(
     metadata: Sequence[tuple[str, str]] | None, api_key: str | None
 ) -> list[tuple[str, str]]:
     """``metadata`` plus ``authorization: Bearer <api_key>`` when there is a key."""
-    out = list(metadata or ())
+    out = [(str(k), str(v)) for k, v in metadata or ()]
     if api_key is not None:
         if any(k.lower() == "authorization" for k, _ in out):
             raise ValueError("api_key: metadata already holds an authorization header")
         out.append(("authorization", f"Bearer {api_key}"))
     return out
+
+
+def _optional_seconds(value: float | None) -> float | None:
+    """``None`` or 0 for "off", else the value as a float."""
+    return None if value is None or value == 0 else float(value)
+
+
+def _read_pem(name: str, value: Pem | None) -> bytes | None:
+    """The PEM bytes of ``value``: bytes as they are, a path's file contents."""
+    if value is None:
+        return None
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return bytes(value)
+    if isinstance(value, str) and value.lstrip().startswith("-----BEGIN"):
+        raise TypeError(f"{name} is PEM text: pass it as bytes (a str is the path of a PEM file)")
+    if isinstance(value, (str, os.PathLike)):
+        try:
+            return Path(value).read_bytes()
+        except OSError as exc:
+            raise ValueError(f"{name}: cannot read {os.fspath(value)!r}: {exc}") from None
+    raise TypeError(
+        f"{name} must be PEM bytes or the path of a PEM file, got {type(value).__name__}"
+    )
+
+
+def _channel_options(connection: ConnectionOptions) -> _native.ChannelOptions:
+    """The native channel's options for ``connection``, checked (``ValueError``)."""
+    tls = connection.get("tls")
+    pems = {
+        "root_certificates": _read_pem("root_certificates", connection.get("root_certificates")),
+        "certificate_chain": _read_pem("certificate_chain", connection.get("certificate_chain")),
+        "private_key": _read_pem("private_key", connection.get("private_key")),
+    }
+    if tls is False and any(v is not None for v in pems.values()):
+        raise ValueError("tls=False contradicts root_certificates/certificate_chain/private_key")
+    keepalive = connection.get("keepalive_secs", DEFAULT_KEEPALIVE_SECS)
+    return _native.ChannelOptions(
+        metadata=_auth_metadata(connection.get("metadata"), connection.get("api_key")),
+        tls=bool(tls),
+        root_certificates=pems["root_certificates"],
+        certificate_chain=pems["certificate_chain"],
+        private_key=pems["private_key"],
+        server_name=connection.get("tls_server_name"),
+        keepalive_secs=None if keepalive is None else float(keepalive),
+        keepalive_timeout_secs=float(
+            connection.get("keepalive_timeout_secs", DEFAULT_KEEPALIVE_TIMEOUT_SECS)
+        ),
+        resume_timeout_secs=_optional_seconds(
+            connection.get("resume_timeout_secs", DEFAULT_RESUME_TIMEOUT_SECS)
+        ),
+    )
 
 
 def _response_types() -> dict[str, type[Message]]:
@@ -146,28 +244,35 @@ _RESPONSES = _response_types()
 class TaskCalls:
     """The task methods of :class:`Client` and :class:`tamrm.Engine`, written once.
 
-    A subclass provides ``_invoke(method, request_bytes) -> response_bytes`` (raising
-    ``tamrm._native.StatusError``) and a ``_transport`` that opens sessions.
+    A subclass provides ``_invoke(method, request_bytes, timeout) -> response_bytes``
+    (raising ``tamrm._native.StatusError``) and a ``_transport`` that opens sessions.
+
+    Every method takes ``timeout=``: that call's deadline in seconds (``None``: none),
+    by default the client's ``timeout``. When it passes, the call raises
+    :class:`tamrm.DeadlineExceeded`. An :class:`tamrm.Engine` runs calls in-process and
+    ignores it.
     """
 
     _transport: Any
 
-    def _invoke(self, method: str, request: bytes) -> bytes:
+    def _invoke(self, method: str, request: bytes, timeout: Timeout) -> bytes:
         raise NotImplementedError
 
-    def _call(self, rpc: ops.Rpc) -> Any:
+    def _call(self, timeout: Timeout, rpc: ops.Rpc) -> Any:
         try:
-            answer = self._invoke(rpc.method, rpc.request.SerializeToString())
+            answer = self._invoke(rpc.method, rpc.request.SerializeToString(), timeout)
         except _native.StatusError as exc:
             raise from_native(exc) from None
         return _RESPONSES[rpc.method].FromString(answer)
 
-    def _run(self, op: ops.Op[_T]) -> _T:
-        return ops.run(op, self._call)
+    def _run(self, op: ops.Op[_T], timeout: Timeout = CLIENT_TIMEOUT) -> _T:
+        return ops.run(op, functools.partial(self._call, timeout))
 
     # -- tasks -----------------------------------------------------------------------
 
-    def create_task(self, task_id: str, **config: Unpack[TaskOptions]) -> Task:
+    def create_task(
+        self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT, **config: Unpack[TaskOptions]
+    ) -> Task:
         """Create a task; keywords left out (or ``None``) take the server's defaults.
 
         The keywords are exactly the ``TaskConfig`` fields (:data:`tamrm.CONFIG_FIELDS`,
@@ -188,37 +293,37 @@ class TaskCalls:
             InvalidArgument: A value is out of range or the task id is malformed.
             AlreadyExists: The task exists with a different configuration.
         """
-        return self._run(ops.create_task(task_id, config))
+        return self._run(ops.create_task(task_id, config), timeout)
 
-    def get_task(self, task_id: str) -> Task:
+    def get_task(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Task:
         """Return a task with its configuration and live statistics.
 
         Raises:
             TaskNotFound: No such task.
         """
-        return self._run(ops.get_task(task_id))
+        return self._run(ops.get_task(task_id), timeout)
 
-    def list_tasks(self) -> list[Task]:
+    def list_tasks(self, *, timeout: Timeout = CLIENT_TIMEOUT) -> list[Task]:
         """Return every task, ordered by task id."""
-        return self._run(ops.list_tasks())
+        return self._run(ops.list_tasks(), timeout)
 
-    def delete_task(self, task_id: str) -> None:
+    def delete_task(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Delete a task and its pool; its open sessions fail with ``TaskNotFound``.
 
         Raises:
             TaskNotFound: No such task.
         """
-        self._run(ops.delete_task(task_id))
+        self._run(ops.delete_task(task_id), timeout)
 
-    def reset_pool(self, task_id: str) -> Task:
+    def reset_pool(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Task:
         """Empty a task's memory pool (its ``pool_version`` increases); returns the task.
 
         Raises:
             TaskNotFound: No such task.
         """
-        return self._run(ops.reset_pool(task_id))
+        return self._run(ops.reset_pool(task_id), timeout)
 
-    def get_pool(self, task_id: str) -> Pool:
+    def get_pool(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Pool:
         """Return a task's memory pool, trajectories ordered by ``seq``.
 
         Discrete trajectories come back as ``int64`` arrays ``(L,)``, continuous ones as
@@ -227,10 +332,15 @@ class TaskCalls:
         Raises:
             TaskNotFound: No such task.
         """
-        return self._run(ops.get_pool(task_id))
+        return self._run(ops.get_pool(task_id), timeout)
 
     def add_trajectory(
-        self, task_id: str, actions: npt.ArrayLike, score: float
+        self,
+        task_id: str,
+        actions: npt.ArrayLike,
+        score: float,
+        *,
+        timeout: Timeout = CLIENT_TIMEOUT,
     ) -> AddTrajectoryResult:
         """Offer one trajectory (e.g. a demonstration) to a task's pool (SPEC §6 rules).
 
@@ -239,6 +349,7 @@ class TaskCalls:
             actions: A 1-D integer array of actions (discrete task) or a 2-D real array
                 ``(L, action_dim)`` (continuous task); at least one action.
             score: The episode score S.
+            timeout: This call's deadline (see the class).
 
         Returns:
             Whether it was stored, and the pool version after the call.
@@ -248,7 +359,7 @@ class TaskCalls:
             InvalidArgument: Empty, out-of-range or wrongly-shaped actions, or a
                 non-finite score.
         """
-        return self._run(ops.add_trajectory(task_id, actions, score))
+        return self._run(ops.add_trajectory(task_id, actions, score), timeout)
 
     # -- sessions --------------------------------------------------------------------
 
@@ -282,17 +393,43 @@ class Client(TaskCalls, Closing):
             with client.session("cartpole", num_envs=8) as session:
                 shaped = session.step(actions, rewards, terminated, truncated)
 
-    A client pickles by its address and settings: the unpickled copy, e.g. in a
-    ``SubprocVecEnv`` worker, opens its own connection.
+    A client pickles by its address and settings (certificates and keys included, read
+    once at construction): the unpickled copy, e.g. in a ``SubprocVecEnv`` worker, opens
+    its own connection.
 
     Args:
         target: The server address, ``host:port`` (surrounding whitespace is ignored).
             Default: the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
-        timeout: Deadline in seconds of each unary call (``None``: no deadline).
-        metadata: Metadata sent with every call.
+        timeout: Default deadline in seconds of each unary call (``None``: no deadline);
+            each method's ``timeout=`` overrides it for one call. Not applied to
+            ``Shape`` streams (sessions).
+        metadata: Metadata (e.g. an authorization header) sent with every call.
+        tls: ``True``: connect with TLS; without ``root_certificates`` the system's CA
+            store verifies the server. Default: TLS when a certificate is given, else
+            plaintext. ``False`` with a certificate is a ``ValueError``.
+        root_certificates: PEM CA certificate(s) that verify the server (turns TLS on).
+        certificate_chain: PEM client certificate for a mutual-TLS server, with
+            ``private_key``.
+        private_key: PEM private key of ``certificate_chain``.
+        tls_server_name: The name the server's certificate must be valid for, when it
+            is not the host of ``target`` (grpcio's ``ssl_target_name_override``).
+        keepalive_secs: Interval of HTTP/2 keepalive pings on an active connection
+            (``None``: no pings). A ping unanswered for ``keepalive_timeout_secs``
+            drops the connection, so a dead server is noticed within their sum.
+        keepalive_timeout_secs: See ``keepalive_secs``.
+        resume_timeout_secs: When a session's stream breaks (the server restarted,
+            went away, or answered ``UNAVAILABLE``), ``Session.step`` reconnects with
+            exponential backoff, re-opens the stream resuming every environment's
+            episode (SPEC §9), re-sends the batch and returns its answer, for up to this
+            many seconds; then it raises :class:`tamrm.Unavailable`. ``None`` or 0:
+            fail at once.
         api_key: The API key of a server started with ``--api-keys``, sent as
             ``authorization: Bearer <key>`` with every call. Default: the
             ``TAMRM_API_KEY`` environment variable, else none.
+
+    Each PEM argument is the file's contents as ``bytes``, or the path of the file
+    (``str`` or ``os.PathLike``), read once here. A malformed PEM, or a path that cannot
+    be read, is a ``ValueError`` here, not a failed call later.
     """
 
     def __init__(
@@ -301,30 +438,55 @@ class Client(TaskCalls, Closing):
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Sequence[tuple[str, str]] | None = None,
+        tls: bool | None = None,
+        root_certificates: Pem | None = None,
+        certificate_chain: Pem | None = None,
+        private_key: Pem | None = None,
+        tls_server_name: str | None = None,
+        keepalive_secs: float | None = DEFAULT_KEEPALIVE_SECS,
+        keepalive_timeout_secs: float = DEFAULT_KEEPALIVE_TIMEOUT_SECS,
         api_key: str | None = None,
+        resume_timeout_secs: float | None = DEFAULT_RESUME_TIMEOUT_SECS,
     ) -> None:
         self.target = parse_target(target)
         self.timeout = timeout
-        self._metadata = tuple(metadata) if metadata else None
-        self._api_key = resolve_api_key(api_key)
-        headers = auth_metadata(self._metadata, self._api_key)
+        connection: ConnectionOptions = {
+            "metadata": tuple(metadata) if metadata else None,
+            "tls": tls,
+            "root_certificates": _read_pem("root_certificates", root_certificates),
+            "certificate_chain": _read_pem("certificate_chain", certificate_chain),
+            "private_key": _read_pem("private_key", private_key),
+            "tls_server_name": tls_server_name,
+            "keepalive_secs": keepalive_secs,
+            "keepalive_timeout_secs": keepalive_timeout_secs,
+            "api_key": resolve_api_key(api_key),
+            "resume_timeout_secs": resume_timeout_secs,
+        }
+        self._connection = connection
         self._transport: _native.Channel
         try:
-            self._transport = _native.Channel(self.target, headers)
+            self._transport = _native.Channel(self.target, _channel_options(connection))
         except _native.StatusError as exc:
             raise from_native(exc) from None
+
+    @property
+    def tls(self) -> bool:
+        """Whether the client connects with TLS."""
+        return bool(self._transport.tls)
 
     def __reduce__(self) -> tuple[Any, ...]:
         # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
         # AsyncVectorEnv worker) opens its own connection.
-        return (_rebuild_client, (self.target, self.timeout, self._metadata, self._api_key))
+        return (_rebuild_client, (self.target, self.timeout, self._connection))
 
     def __deepcopy__(self, memo: dict[int, object]) -> Client:
         # A handle on a connection, like the sessions: deep copies are the same client.
         return self
 
-    def _invoke(self, method: str, request: bytes) -> bytes:
-        return self._transport.call(method, request, self.timeout)
+    def _invoke(self, method: str, request: bytes, timeout: Timeout) -> bytes:
+        if timeout is CLIENT_TIMEOUT:
+            timeout = self.timeout
+        return self._transport.call(method, request, timeout)
 
     # -- lifecycle -------------------------------------------------------------------
 
@@ -343,4 +505,5 @@ class Client(TaskCalls, Closing):
         """Close the client (its connection closes once its sessions are closed too)."""
 
     def __repr__(self) -> str:
-        return f"<tamrm.Client target={self.target!r}>"
+        tls = " tls" if self.tls else ""
+        return f"<tamrm.Client target={self.target!r}{tls}>"

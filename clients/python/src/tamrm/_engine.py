@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from tamrm import _native
-from tamrm._client import TaskCalls
+from tamrm._client import TaskCalls, Timeout
 from tamrm._closing import Closing
 from tamrm._errors import from_native
 
@@ -54,7 +54,8 @@ class Engine(TaskCalls, Closing):
         except _native.StatusError as exc:
             raise from_native(exc) from None
 
-    def _invoke(self, method: str, request: bytes) -> bytes:
+    def _invoke(self, method: str, request: bytes, timeout: Timeout) -> bytes:
+        # In-process: nothing to wait for on a network, so no deadline.
         return self._transport.call(method, request)
 
     def __reduce__(self) -> tuple[Any, ...]:

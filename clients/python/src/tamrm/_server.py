@@ -12,9 +12,12 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tamrm import _native
+
+if TYPE_CHECKING:
+    from tamrm._client import ConnectionOptions
 
 __all__ = ["LocalServer", "ServerStartError", "find_binary", "health_check", "local_server"]
 
@@ -61,14 +64,23 @@ def find_binary() -> Path:
     )
 
 
-def health_check(target: str, service: str = "", timeout: float = 2.0) -> bool:
+def health_check(
+    target: str,
+    service: str = "",
+    timeout: float = 2.0,
+    connection: ConnectionOptions | None = None,
+) -> bool:
     """Ask ``grpc.health.v1.Health/Check`` whether ``service`` is SERVING at ``target``.
 
-    Returns ``False`` on any error.
+    ``connection`` holds the client's TLS settings for a TLS server (the keywords of
+    :class:`tamrm.Client`). Returns ``False`` on any error.
     """
+    from tamrm._client import _channel_options
+
     try:
-        return _native.Channel(target).health(service, timeout)
-    except (ValueError, _native.StatusError):
+        options = _channel_options(connection or {})
+        return _native.Channel(target, options).health(service, timeout)
+    except (ValueError, TypeError, _native.StatusError):
         return False
 
 
@@ -81,12 +93,15 @@ class LocalServer:
         data_dir: The server's data directory (``None`` for an in-memory server).
         process: The server process.
         log_path: The file receiving the server's stdout and stderr.
+        connection: How clients connect (TLS settings), the keywords of
+            :class:`tamrm.Client` that :meth:`client` passes.
     """
 
     address: str
     data_dir: Path | None
     process: subprocess.Popen[bytes]
     log_path: Path
+    connection: ConnectionOptions = field(default_factory=dict)  # type: ignore[assignment]
     _clients: list[Any] = field(default_factory=list, repr=False)
 
     @property
@@ -100,10 +115,13 @@ class LocalServer:
         return int(self.address.rsplit(":", 1)[1])
 
     def client(self, **kwargs: Any) -> Any:
-        """Return a :class:`tamrm.Client` connected to this server (closed on stop)."""
+        """Return a :class:`tamrm.Client` connected to this server (closed on stop).
+
+        It connects with :attr:`connection`, overridden by ``kwargs``.
+        """
         from tamrm._client import Client
 
-        client = Client(self.address, **kwargs)
+        client = Client(self.address, **{**self.connection, **kwargs})
         self._clients.append(client)
         return client
 
@@ -162,6 +180,7 @@ def local_server(
     env: Mapping[str, str] | None = None,
     startup_timeout: float = 60.0,
     in_memory: bool = False,
+    connection: ConnectionOptions | None = None,
 ) -> Iterator[LocalServer]:
     """Run a ``tamrm`` server for the duration of a ``with`` block.
 
@@ -184,6 +203,9 @@ def local_server(
         startup_timeout: Seconds to wait for the server to become healthy.
         in_memory: Start the server without ``--data-dir`` (tasks and pools in memory
             only, nothing fsynced); ``data_dir`` must then be ``None``.
+        connection: How to connect to it, the keywords of :class:`tamrm.Client` (e.g.
+            ``root_certificates=`` for a server started with ``--tls-cert``): used for
+            the health check and by :meth:`LocalServer.client`.
 
     Raises:
         ServerStartError: No binary, or the server exited or did not become healthy in
@@ -219,7 +241,7 @@ def local_server(
                 if process.poll() is not None:
                     break
                 address = _read_address(port_file, log_path)
-                if address is not None and health_check(address, "", timeout=1.0):
+                if address is not None and health_check(address, "", 1.0, connection):
                     break
                 time.sleep(0.05)
             else:
@@ -237,6 +259,7 @@ def local_server(
                 data_dir=None if in_memory else data,
                 process=process,
                 log_path=log_path,
+                connection=connection or {},
             )
             yield server
         finally:

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from tamrm._client import DEFAULT_TIMEOUT
+from tamrm._client import CLIENT_TIMEOUT, DEFAULT_TIMEOUT, ConnectionOptions, Timeout
 from tamrm._client import Client as _SyncClient
 from tamrm._closing import AsyncClosing
 from tamrm._errors import SessionClosed
@@ -34,8 +34,6 @@ from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskConfig, TaskOptions
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
-
     from typing_extensions import Unpack
 
 __all__ = ["AsyncSession", "Client"]
@@ -183,10 +181,12 @@ class Client(AsyncClosing):
     Args:
         target: The server address, ``host:port`` (default: ``$TAMRM_ADDRESS``, else
             ``127.0.0.1:50051``); see :class:`tamrm.Client`.
-        timeout: Deadline in seconds of each unary call (``None``: no deadline).
-        metadata: Metadata sent with every call.
-        api_key: The server's API key (default: ``$TAMRM_API_KEY``); see
-            :class:`tamrm.Client`.
+        timeout: Default deadline in seconds of each unary call (``None``: no deadline);
+            each method's ``timeout=`` overrides it for one call.
+        **connection: How to connect, exactly as :class:`tamrm.Client`: ``metadata``,
+            ``tls``, ``root_certificates``, ``certificate_chain``, ``private_key``,
+            ``tls_server_name``, ``keepalive_secs``, ``keepalive_timeout_secs``,
+            ``api_key``, ``resume_timeout_secs`` (:class:`tamrm.ConnectionOptions`).
     """
 
     def __init__(
@@ -194,42 +194,53 @@ class Client(AsyncClosing):
         target: str | None = None,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
-        metadata: Sequence[tuple[str, str]] | None = None,
-        api_key: str | None = None,
+        **connection: Unpack[ConnectionOptions],
     ) -> None:
-        self._sync = _SyncClient(target, timeout=timeout, metadata=metadata, api_key=api_key)
+        self._sync = _SyncClient(target, timeout=timeout, **connection)
         self.target = self._sync.target
         self.timeout = timeout
 
-    async def create_task(self, task_id: str, **config: Unpack[TaskOptions]) -> Task:
+    @property
+    def tls(self) -> bool:
+        """Whether the client connects with TLS."""
+        return self._sync.tls
+
+    async def create_task(
+        self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT, **config: Unpack[TaskOptions]
+    ) -> Task:
         """Create a task; see :meth:`tamrm.Client.create_task`."""
-        return await _in_thread(self._sync.create_task, task_id, **config)
+        return await _in_thread(self._sync.create_task, task_id, timeout=timeout, **config)
 
-    async def get_task(self, task_id: str) -> Task:
+    async def get_task(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Task:
         """Return a task; see :meth:`tamrm.Client.get_task`."""
-        return await _in_thread(self._sync.get_task, task_id)
+        return await _in_thread(self._sync.get_task, task_id, timeout=timeout)
 
-    async def list_tasks(self) -> list[Task]:
+    async def list_tasks(self, *, timeout: Timeout = CLIENT_TIMEOUT) -> list[Task]:
         """Return every task, ordered by task id."""
-        return await _in_thread(self._sync.list_tasks)
+        return await _in_thread(self._sync.list_tasks, timeout=timeout)
 
-    async def delete_task(self, task_id: str) -> None:
+    async def delete_task(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> None:
         """Delete a task and its pool; see :meth:`tamrm.Client.delete_task`."""
-        await _in_thread(self._sync.delete_task, task_id)
+        await _in_thread(self._sync.delete_task, task_id, timeout=timeout)
 
-    async def reset_pool(self, task_id: str) -> Task:
+    async def reset_pool(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Task:
         """Empty a task's memory pool; see :meth:`tamrm.Client.reset_pool`."""
-        return await _in_thread(self._sync.reset_pool, task_id)
+        return await _in_thread(self._sync.reset_pool, task_id, timeout=timeout)
 
-    async def get_pool(self, task_id: str) -> Pool:
+    async def get_pool(self, task_id: str, *, timeout: Timeout = CLIENT_TIMEOUT) -> Pool:
         """Return a task's memory pool; see :meth:`tamrm.Client.get_pool`."""
-        return await _in_thread(self._sync.get_pool, task_id)
+        return await _in_thread(self._sync.get_pool, task_id, timeout=timeout)
 
     async def add_trajectory(
-        self, task_id: str, actions: npt.ArrayLike, score: float
+        self,
+        task_id: str,
+        actions: npt.ArrayLike,
+        score: float,
+        *,
+        timeout: Timeout = CLIENT_TIMEOUT,
     ) -> AddTrajectoryResult:
         """Offer a trajectory to a task's pool; see :meth:`tamrm.Client.add_trajectory`."""
-        return await _in_thread(self._sync.add_trajectory, task_id, actions, score)
+        return await _in_thread(self._sync.add_trajectory, task_id, actions, score, timeout=timeout)
 
     def session(self, task_id: str, num_envs: int = 1) -> AsyncSession:
         """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``."""
@@ -244,16 +255,12 @@ class Client(AsyncClosing):
         self._sync.close()
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_rebuild, (self.target, self.timeout, self._sync._metadata, self._sync._api_key))
+        return (_rebuild, (self.target, self.timeout, self._sync._connection))
 
     def __repr__(self) -> str:
-        return f"<tamrm.aio.Client target={self.target!r}>"
+        tls = " tls" if self.tls else ""
+        return f"<tamrm.aio.Client target={self.target!r}{tls}>"
 
 
-def _rebuild(
-    target: str,
-    timeout: float | None,
-    metadata: Sequence[tuple[str, str]] | None,
-    api_key: str | None = None,
-) -> Client:
-    return Client(target, timeout=timeout, metadata=metadata, api_key=api_key)
+def _rebuild(target: str, timeout: float | None, connection: ConnectionOptions) -> Client:
+    return Client(target, timeout=timeout, **connection)
