@@ -359,6 +359,23 @@ mod tests {
             );
         }
 
+        // TLS files layer like the rest; a certificate without its key is an error.
+        std::fs::write(&file, "[tls]\ncert = \"/f/c.pem\"\nkey = \"/f/k.pem\"\n").unwrap();
+        let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
+        assert_eq!(s.tls.key.as_deref(), Some(Path::new("/f/k.pem")));
+        std::env::set_var("TAMRM_TLS_KEY", "/env/k.pem");
+        let s = Settings::resolve(&parse(&["--config", file_arg, "--tls-cert", "/flag/c.pem"]))
+            .unwrap();
+        std::env::remove_var("TAMRM_TLS_KEY");
+        assert_eq!(s.tls.cert.as_deref(), Some(Path::new("/flag/c.pem")));
+        assert_eq!(
+            s.tls.key.as_deref(),
+            Some(Path::new("/env/k.pem")),
+            "env beats file"
+        );
+        let e = Settings::resolve(&parse(&["--tls-cert", "/c.pem"])).unwrap_err();
+        assert!(e.to_string().contains("--tls-key"), "{e}");
+
         std::fs::write(&file, "listn = \"x\"\n").unwrap();
         let e = Settings::resolve(&parse(&["--config", file_arg])).unwrap_err();
         assert!(e.to_string().contains("listn"), "{e}");

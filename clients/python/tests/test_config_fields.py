@@ -51,9 +51,12 @@ def test_task_options_have_every_field() -> None:
 @pytest.mark.parametrize("cls", [tamrm.Client, tamrm.aio.Client], ids=["sync", "aio"])
 def test_create_task_takes_task_options(cls: type) -> None:
     params = list(inspect.signature(cls.create_task).parameters.values())
-    assert [p.name for p in params] == ["self", "task_id", "config"]
-    assert params[2].kind is inspect.Parameter.VAR_KEYWORD
-    assert params[2].annotation == "Unpack[TaskOptions]"
+    # timeout= is the call's deadline, keyword-only: it can never be a TaskConfig field.
+    assert [p.name for p in params] == ["self", "task_id", "timeout", "config"]
+    assert params[2].kind is inspect.Parameter.KEYWORD_ONLY
+    assert "timeout" not in PROTO_FIELDS
+    assert params[3].kind is inspect.Parameter.VAR_KEYWORD
+    assert params[3].annotation == "Unpack[TaskOptions]"
 
 
 def test_create_task_rejects_unknown_keywords(client: tamrm.Client) -> None:
