@@ -37,9 +37,7 @@ def _batches(seed: int, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _shape_all(session: tamrm.Session, batches: list, start: int, stop: int) -> list:
-    return [
-        session.step(a, r, t).rewards.tolist() for a, r, t in batches[start:stop]
-    ]
+    return [session.step(a, r, t).rewards.tolist() for a, r, t in batches[start:stop]]
 
 
 def test_a_session_resumes_across_a_kill_and_restart(server_binary: str, tmp_path: Path) -> None:
