@@ -487,7 +487,17 @@ impl RemoteStream {
     pub fn step(&mut self, batch: &Prepared, tracker: &Tracker) -> Result<Answer, StepError> {
         let first = self.step_once(batch, tracker);
         let Some(limit) = self.resume_timeout else {
-            return first;
+            return first.map_err(|e| match e {
+                StepError::Status(s) if resumable(&s) && s.code() != Code::Unavailable => {
+                    Status::unavailable(format!(
+                        "the connection to {} broke under the session: {}",
+                        self.target,
+                        s.message()
+                    ))
+                    .into()
+                }
+                other => other,
+            });
         };
         let mut failure = match first {
             Err(StepError::Status(s)) if resumable(&s) => s,
