@@ -9,7 +9,8 @@
 //! - [`session`]: the transport-free stream: episodes, batch validation, the step path;
 //! - [`service`]: the `tamrm.v1.Shaping` gRPC mapping only; errors become statuses in one
 //!   place ([`service::status`]);
-//! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings.
+//! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings;
+//! - [`telemetry`]: Prometheus metrics (`--metrics-listen`).
 
 #![warn(missing_docs)]
 
@@ -30,3 +31,4 @@ pub mod service;
 pub mod session;
 pub mod settings;
 pub mod store;
+pub mod telemetry;

@@ -19,6 +19,7 @@ use crate::service::status::remap_response_headers;
 use crate::service::ShapingService;
 use crate::settings::Settings;
 use crate::store::{DiskStore, MemoryStore, Store};
+use crate::telemetry::{self, GrpcMetricsLayer, Metrics};
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -50,12 +51,18 @@ pub struct RunningServer {
     registry: Arc<Registry>,
     serve: JoinHandle<Result<(), tonic::transport::Error>>,
     closing: TaskTracker,
+    metrics_addr: Option<SocketAddr>,
 }
 
 impl RunningServer {
     /// The bound address (with the real port when listening on port 0).
     pub fn addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// The bound address of the metrics endpoint, if metrics are on.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
     }
 
     /// Stops accepting, lets open streams finish the batch they are processing (they then
@@ -85,6 +92,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         None => Arc::new(MemoryStore::new()),
     };
     tracing::info!("{}", store.describe());
+    let metrics = settings.metrics_listen.map(|_| Arc::new(Metrics::new()));
+    let store = telemetry::metered(store, metrics.as_ref());
     let (registry, restored) = Registry::open(store, settings.limits).await?;
     if restored.tasks > 0 {
         tracing::info!(
@@ -110,7 +119,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
 
     let shutdown = CancellationToken::new();
     let limit = settings.limits.max_message_bytes;
-    let shaping = ShapingServer::new(ShapingService::new(registry.clone(), shutdown.clone()))
+    let service = ShapingService::new(registry.clone(), shutdown.clone());
+    let shaping = ShapingServer::new(service.with_metrics(metrics.clone()))
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit);
     let (health_reporter, health) = tonic_health::server::health_reporter();
@@ -124,6 +134,14 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let reflection_v1 = reflection(tonic_reflection::server::Builder::configure()).build_v1()?;
     let reflection_v1alpha =
         reflection(tonic_reflection::server::Builder::configure()).build_v1alpha()?;
+    let metrics_addr = match (settings.metrics_listen, &metrics) {
+        (Some(at), Some(m)) => Some(
+            telemetry::listen(at, m.clone(), registry.clone(), shutdown.clone())
+                .await
+                .map_err(|source| StartError::Bind { addr: at, source })?,
+        ),
+        _ => None,
+    };
 
     let stop = shutdown.clone();
     let reporter = health_reporter.clone();
@@ -133,6 +151,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let router = Server::builder()
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(20)))
+        .layer(GrpcMetricsLayer::new(metrics)) // outside the remap: sees the final codes
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
         .add_service(health)
         .add_service(reflection_v1)
@@ -163,6 +182,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         registry,
         serve,
         closing,
+        metrics_addr,
     })
 }
 

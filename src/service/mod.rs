@@ -17,6 +17,7 @@ use crate::proto::shaping_server::Shaping;
 use crate::proto::{self};
 use crate::registry::{Registry, TaskHandle};
 use crate::session::validate_task_id;
+use crate::telemetry::Metrics;
 use convert::{config_input, pool_proto, task_proto, trajectory_input};
 
 /// The Shaping service over a [`Registry`].
@@ -24,13 +25,24 @@ use convert::{config_input, pool_proto, task_proto, trajectory_input};
 pub struct ShapingService {
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    metrics: Option<Arc<Metrics>>,
 }
 
 impl ShapingService {
     /// A service over `registry`; open streams end with UNAVAILABLE once `shutdown` is
     /// cancelled (after finishing the batch they are processing).
     pub fn new(registry: Arc<Registry>, shutdown: CancellationToken) -> ShapingService {
-        ShapingService { registry, shutdown }
+        ShapingService {
+            registry,
+            shutdown,
+            metrics: None,
+        }
+    }
+
+    /// Records each Shape stream's batches into `metrics` (nothing with `None`).
+    pub fn with_metrics(mut self, metrics: Option<Arc<Metrics>>) -> ShapingService {
+        self.metrics = metrics;
+        self
     }
 
     fn task(&self, id: &str) -> Result<Arc<TaskHandle>, Error> {
@@ -140,6 +152,7 @@ impl Shaping for ShapingService {
         tokio::spawn(stream::run(
             self.registry.clone(),
             self.shutdown.clone(),
+            self.metrics.clone(),
             inbound,
             tx,
         ));

@@ -2,7 +2,7 @@
 //! [`StreamSession`]: `Open`, then one `ShapedBatch` per `StepBatch`.
 
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc::Sender;
 use tokio_util::sync::CancellationToken;
@@ -14,6 +14,7 @@ use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
 use crate::registry::Registry;
 use crate::session::{OpenRequest, StreamSession};
+use crate::telemetry::Metrics;
 
 type Tx = Sender<Result<ShapeResponse, Status>>;
 
@@ -66,6 +67,7 @@ async fn next(
 async fn serve(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    metrics: Option<Arc<Metrics>>,
     mut inbound: Streaming<ShapeRequest>,
     tx: &Tx,
 ) -> End {
@@ -98,6 +100,7 @@ async fn serve(
         return End::ClientDone;
     }
     tracing::debug!(task = %session.task().id(), num_envs = session.num_envs(), "stream opened");
+    let meter = metrics.map(|m| m.shape(session.task().id()));
 
     let mut scores = Vec::new();
     loop {
@@ -108,8 +111,14 @@ async fn serve(
             }
             Err(end) => return end,
         };
+        let started = meter.as_ref().map(|_| Instant::now());
         let shaped = match session.step(&batch_view(&batch, &mut scores)).await {
-            Ok(shaped) => shaped_proto(&shaped),
+            Ok(shaped) => {
+                if let (Some(m), Some(t)) = (&meter, started) {
+                    m.batch(shaped.outputs.len(), shaped.episodes_ended, t.elapsed());
+                }
+                shaped_proto(&shaped)
+            }
             Err(e) => return e.into(),
         };
         let msg = ShapeResponse {
@@ -125,10 +134,11 @@ async fn serve(
 pub(super) async fn run(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
+    metrics: Option<Arc<Metrics>>,
     inbound: Streaming<ShapeRequest>,
     tx: Tx,
 ) {
-    match serve(registry, shutdown, inbound, &tx).await {
+    match serve(registry, shutdown, metrics, inbound, &tx).await {
         End::ClientDone => {}
         End::Fail(status) => {
             tracing::debug!(code = ?status.code(), message = status.message(), "stream ended with an error");
