@@ -6,7 +6,7 @@
 //!   episode ends, a few atomic operations per batch (nothing per entry);
 //! - [`MeteredStore`], a [`Store`](crate::store::Store) decorator: store commits' latency
 //!   and the pool changes they made;
-//! - the task and open-stream gauges, read from the registry when scraped.
+//! - the task gauge, read from the registry when scraped.
 //!
 //! With metrics off nothing is recorded: the layer passes requests through, streams hold
 //! no [`ShapeMetrics`] and the store is not wrapped.
@@ -179,10 +179,13 @@ impl Metrics {
         Metrics { registry, ..m }
     }
 
-    /// The recorder of one Shape stream on `task`.
+    /// The recorder of one open Shape stream on `task`: counts as an open stream until
+    /// dropped.
     pub fn shape(&self, task: &str) -> ShapeMetrics {
         let label = self.labels.label(task);
+        self.open_streams.inc();
         ShapeMetrics {
+            open_streams: self.open_streams.clone(),
             steps: self.steps.get_or_create_owned(&label),
             episodes: self.episodes.get_or_create_owned(&label),
             batch_seconds: self.batch_seconds.clone(),
@@ -199,15 +202,11 @@ impl Metrics {
         }
     }
 
-    /// The Prometheus text exposition (format 0.0.4) of every metric, with the task and
-    /// open-stream gauges read from `tasks` now.
+    /// The Prometheus text exposition (format 0.0.4) of every metric, with the task gauge
+    /// read from `tasks` now.
     pub fn render(&self, tasks: &crate::registry::Registry) -> Result<String, std::fmt::Error> {
-        let list = tasks.list();
-        let open: u64 = list.iter().map(|t| u64::from(t.stats().open_streams)).sum();
-        self.tasks
-            .set(i64::try_from(list.len()).unwrap_or(i64::MAX));
-        self.open_streams
-            .set(i64::try_from(open).unwrap_or(i64::MAX));
+        let count = tasks.list().len();
+        self.tasks.set(i64::try_from(count).unwrap_or(i64::MAX));
         let mut text = String::new();
         prometheus_client::encoding::prometheus_text::encode(&mut text, &self.registry)?;
         Ok(text)
@@ -215,9 +214,11 @@ impl Metrics {
 }
 
 /// The metrics one Shape stream records, resolved when it opens: per batch, two
-/// histogram observations and one or two counter additions.
-#[derive(Debug, Clone)]
+/// histogram observations and one or two counter additions. Not `Clone`: it is the
+/// stream's count in `tamrm_open_streams`, given back when dropped.
+#[derive(Debug)]
 pub struct ShapeMetrics {
+    open_streams: Gauge,
     steps: Counter,
     episodes: Counter,
     batch_seconds: Histogram,
@@ -234,6 +235,12 @@ impl ShapeMetrics {
         if episodes > 0 {
             self.episodes.inc_by(episodes as u64);
         }
+    }
+}
+
+impl Drop for ShapeMetrics {
+    fn drop(&mut self) {
+        self.open_streams.dec();
     }
 }
 
@@ -282,5 +289,10 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("tamrm_tasks 0\n"));
+        assert!(text.contains("tamrm_open_streams 0\n"), "streams closed");
+        let open = m.shape("task-0");
+        let text = m.render(&registry).unwrap();
+        assert!(text.contains("tamrm_open_streams 1\n"), "{text}");
+        drop(open);
     }
 }
