@@ -12,7 +12,8 @@
 //! Flags (after `--`): `--quick` (10× fewer batches, shorter windows, 3 reps),
 //! `--scenarios` or `--throughput` (only that table), `--reps N`, `--secs S` (length of
 //! one throughput window), `--case ENTRIES,STREAMS` and `--side echo|server` (one row,
-//! one side: for profiling). Client and server share the machine, so absolute numbers are
+//! one side: for profiling), `--metrics` (the server with Prometheus metrics on, at
+//! 127.0.0.1:0, never scraped: the cost of recording). Client and server share the machine, so absolute numbers are
 //! a lower bound on what a dedicated server does; the ratios are the point (see
 //! docs/benchmarks.md).
 
@@ -246,6 +247,7 @@ async fn run(s: &Scenario) -> Outcome {
     let settings = Settings {
         listen: "127.0.0.1:0".parse().expect("addr"),
         data_dir: s.durable.then(|| dir.path().to_path_buf()),
+        metrics_listen: metrics_listen(),
         ..Settings::default()
     };
     let server = tamrm::server::start(&settings).await.expect("server");
@@ -377,6 +379,7 @@ async fn throughput(echo: bool, streams: usize, envs: u32, window: Duration) -> 
     } else {
         let settings = Settings {
             listen: "127.0.0.1:0".parse().expect("addr"),
+            metrics_listen: metrics_listen(),
             ..Settings::default()
         };
         let server = tamrm::server::start(&settings).await.expect("server");
@@ -539,6 +542,13 @@ fn throughput_table(rt: &tokio::runtime::Runtime, reps: usize, window: Duration,
             );
         }
     }
+}
+
+/// `--metrics`: the server records Prometheus metrics (on 127.0.0.1:0).
+fn metrics_listen() -> Option<std::net::SocketAddr> {
+    std::env::args()
+        .any(|a| a == "--metrics")
+        .then(|| "127.0.0.1:0".parse().expect("addr"))
 }
 
 fn main() {

@@ -2,7 +2,7 @@
 # Container test of the tamrm image (issue 11 item 1), with podman:
 #   build tamrm:latest (docker/build.sh), run it with a named volume on a free port, wait
 #   for HEALTHCHECK to pass, create a task and shape episodes through the Python client,
-#   stop and start the container and find the pool and task intact, check that the server
+#   find them counted on the metrics endpoint (GET /metrics), stop and start the container and find the pool and task intact, check that the server
 #   does not run as root and that the image is at most 20 MB, then remove what it made.
 #
 #   bash docker/test.sh
@@ -82,13 +82,17 @@ user=$(podman image inspect --format '{{.Config.User}}' "$image")
 hc=$(podman image inspect --format '{{json .Config.Healthcheck}}' "$image")
 [[ "$hc" == *'"/tamrm","healthcheck"'* ]] || fail "image has no HEALTHCHECK /tamrm healthcheck: $hc"
 
-port=$("$py" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+free_port() { "$py" -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
+port=$(free_port)
+mport=$(free_port)
+[[ "$mport" != "$port" ]] || mport=$(free_port)
 podman volume create "$vol" >/dev/null
 run() {
     # The hardening of docker/compose.yaml: read-only root, no capabilities.
     podman run -d --runtime runc --network host --name "$name" -v "$vol:/data" \
         --read-only --cap-drop ALL --security-opt no-new-privileges \
-        -e TAMRM_LISTEN="127.0.0.1:$port" "$image" >/dev/null 2>>"$work/podman.err"
+        -e TAMRM_LISTEN="127.0.0.1:$port" -e TAMRM_METRICS_LISTEN="127.0.0.1:$mport" \
+        "$image" >/dev/null 2>>"$work/podman.err"
 }
 wait_healthy() {
     # `podman healthcheck run` runs the image's HEALTHCHECK in the container now (the
@@ -152,6 +156,26 @@ wait_healthy
 [[ $(podman inspect --format '{{.State.Health.Status}}' "$name") == healthy ]] \
     || fail "health status is not healthy"
 client fill
+
+say "checking the metrics endpoint on 127.0.0.1:$mport"
+"$py" - "$mport" <<'PY' || fail "the metrics do not show the shaping"
+import sys, urllib.request
+text = urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[1]}/metrics", timeout=10).read().decode()
+want = {
+    'tamrm_steps_shaped_total{task="docker-test"}': 240.0,
+    'tamrm_episodes_completed_total{task="docker-test"}': 40.0,
+}
+got = {}
+for line in text.splitlines():
+    series, _, value = line.rpartition(" ")
+    if series in want:
+        got[series] = float(value)
+assert got == want, f"{got} != {want}"
+shape = [l for l in text.splitlines()
+         if l.startswith("grpc_server_started_total{") and 'grpc_method="Shape"' in l]
+assert shape and float(shape[0].rsplit(" ", 1)[1]) >= 1, f"no Shape RPC counted: {shape}"
+print("metrics: 240 steps and 40 episodes counted, Shape streams started:", shape[0].rsplit(" ", 1)[1])
+PY
 
 say "checking the server process is not root"
 pid=$(podman inspect --format '{{.State.Pid}}' "$name")

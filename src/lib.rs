@@ -11,7 +11,8 @@
 //!   place ([`service::status`]);
 //! - [`auth`]: credentials, roles, tenants and quotas (SPEC §11), checked by a tower
 //!   layer before any handler runs;
-//! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings.
+//! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings;
+//! - [`telemetry`]: Prometheus metrics (`--metrics-listen`).
 
 #![warn(missing_docs)]
 
@@ -33,3 +34,4 @@ pub mod service;
 pub mod session;
 pub mod settings;
 pub mod store;
+pub mod telemetry;

@@ -24,6 +24,7 @@ pub struct Cli {
 
 /// Subcommands.
 #[derive(Debug, Subcommand)]
+#[allow(clippy::large_enum_variant)] // parsed once per process; boxing buys nothing
 pub enum Command {
     /// Serve the tamrm.v1.Shaping gRPC API (plus grpc.health.v1 and server reflection).
     Serve(ServeArgs),
@@ -120,6 +121,10 @@ pub struct ServeArgs {
     /// <name>` in the file).
     #[command(flatten)]
     pub tls: TlsFiles,
+    /// Serve Prometheus metrics at `http://ADDR/metrics` (`host:port`; port 0 picks a free
+    /// port) [default: off].
+    #[arg(long, env = "TAMRM_METRICS_LISTEN", value_name = "ADDR", value_parser = parse_addr)]
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 /// The config file: every key optional.
@@ -141,6 +146,9 @@ pub struct FileSettings {
     pub api_keys: Option<PathBuf>,
     /// TLS files (any subset).
     pub tls: Option<TlsFiles>,
+    /// Metrics address (`host:port`).
+    #[serde(default, deserialize_with = "deserialize_addr")]
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 /// Resolved server settings.
@@ -160,6 +168,8 @@ pub struct Settings {
     pub api_keys: Option<PathBuf>,
     /// TLS files (TLS off when none).
     pub tls: TlsFiles,
+    /// Where to serve Prometheus metrics; `None`: no metrics.
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 impl Default for Settings {
@@ -172,6 +182,7 @@ impl Default for Settings {
             shutdown_grace_secs: 30,
             api_keys: None,
             tls: TlsFiles::default(),
+            metrics_listen: None,
         }
     }
 }
@@ -212,6 +223,7 @@ impl Settings {
         if f.api_keys.is_some() {
             self.api_keys.clone_from(&f.api_keys);
         }
+        self.metrics_listen = f.metrics_listen.or(self.metrics_listen);
         if let Some(l) = &f.limits {
             self.limits.apply(l);
         }
@@ -232,6 +244,7 @@ impl Settings {
         if a.api_keys.is_some() {
             self.api_keys.clone_from(&a.api_keys);
         }
+        self.metrics_listen = a.metrics_listen.or(self.metrics_listen);
         self.limits.apply(&a.limits);
         self.tls.apply(&a.tls);
     }
@@ -302,7 +315,7 @@ mod tests {
         let file = dir.path().join("tamrm.toml");
         std::fs::write(
             &file,
-            "listen = \"127.0.0.1:7000\"\ndata_dir = \"/from/file\"\n[limits]\nmax_tasks = 5\nmax_batch_entries = 9\n",
+            "listen = \"127.0.0.1:7000\"\ndata_dir = \"/from/file\"\nmetrics_listen = \"127.0.0.1:9000\"\n[limits]\nmax_tasks = 5\nmax_batch_entries = 9\n",
         )
         .unwrap();
         let file_arg = file.to_str().unwrap();
@@ -312,6 +325,7 @@ mod tests {
 
         let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
         assert_eq!(s.listen.port(), 7000);
+        assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9000));
         assert_eq!(s.data_dir.as_deref(), Some(Path::new("/from/file")));
         assert_eq!((s.limits.max_tasks, s.limits.max_batch_entries), (5, 9));
         assert_eq!(
@@ -321,8 +335,10 @@ mod tests {
 
         std::env::set_var("TAMRM_LISTEN", "127.0.0.1:7001");
         std::env::set_var("TAMRM_MAX_TASKS", "6");
+        std::env::set_var("TAMRM_METRICS_LISTEN", "127.0.0.1:9001");
         let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
         assert_eq!(s.listen.port(), 7001, "env beats file");
+        assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9001));
         assert_eq!(s.limits.max_tasks, 6);
         assert_eq!(
             s.limits.max_batch_entries, 9,
@@ -336,12 +352,16 @@ mod tests {
             "127.0.0.1:0",
             "--max-tasks",
             "7",
+            "--metrics-listen",
+            "127.0.0.1:9002",
         ]))
         .unwrap();
         assert_eq!(s.listen.port(), 0, "flags beat env");
+        assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9002));
         assert_eq!(s.limits.max_tasks, 7);
         std::env::remove_var("TAMRM_LISTEN");
         std::env::remove_var("TAMRM_MAX_TASKS");
+        std::env::remove_var("TAMRM_METRICS_LISTEN");
 
         let s = Settings::resolve(&parse(&["--listen", "localhost:7002"])).unwrap();
         assert_eq!(

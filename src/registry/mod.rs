@@ -196,6 +196,16 @@ impl Registry {
         v
     }
 
+    /// How many tasks the server holds, over every tenant.
+    pub fn len(&self) -> usize {
+        self.tasks.len()
+    }
+
+    /// Whether the server holds no task.
+    pub fn is_empty(&self) -> bool {
+        self.tasks.is_empty()
+    }
+
     /// How many tasks `tenant` holds.
     pub fn count(&self, tenant: &str) -> usize {
         self.tasks

@@ -21,6 +21,7 @@ use crate::service::status::remap_response_headers;
 use crate::service::ShapingService;
 use crate::settings::Settings;
 use crate::store::{DiskStore, MemoryStore, Store};
+use crate::telemetry::{self, GrpcMetricsLayer, Metrics};
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
@@ -58,12 +59,18 @@ pub struct RunningServer {
     registry: Arc<Registry>,
     serve: JoinHandle<Result<(), tonic::transport::Error>>,
     closing: TaskTracker,
+    metrics_addr: Option<SocketAddr>,
 }
 
 impl RunningServer {
     /// The bound address (with the real port when listening on port 0).
     pub fn addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// The bound address of the metrics endpoint, if metrics are on.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
     }
 
     /// Stops accepting, lets open streams finish the batch they are processing (they then
@@ -95,6 +102,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         None => Arc::new(MemoryStore::new()),
     };
     tracing::info!("{}", store.describe());
+    let metrics = settings.metrics_listen.map(|_| Arc::new(Metrics::new()));
+    let store = telemetry::metered(store, metrics.as_ref());
     let (registry, restored) = Registry::open(store, settings.limits).await?;
     if restored.tasks > 0 {
         tracing::info!(
@@ -125,7 +134,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     if access.is_some() {
         service = service.with_credentials_required();
     }
-    let shaping = ShapingServer::new(service)
+    let shaping = ShapingServer::new(service.with_metrics(metrics.clone()))
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit);
     let (health_reporter, health) = tonic_health::server::health_reporter();
@@ -139,6 +148,14 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let reflection_v1 = reflection(tonic_reflection::server::Builder::configure()).build_v1()?;
     let reflection_v1alpha =
         reflection(tonic_reflection::server::Builder::configure()).build_v1alpha()?;
+    let metrics_addr = match (settings.metrics_listen, &metrics) {
+        (Some(at), Some(m)) => Some(
+            telemetry::listen(at, m.clone(), registry.clone(), shutdown.clone())
+                .await
+                .map_err(|source| StartError::Bind { addr: at, source })?,
+        ),
+        _ => None,
+    };
 
     let stop = shutdown.clone();
     let reporter = health_reporter.clone();
@@ -158,6 +175,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let router = builder
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(20)))
+        .layer(GrpcMetricsLayer::new(metrics)) // outside the remap: sees the final codes
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
         .layer(tower::util::option_layer(access.map(AuthLayer::new)))
         .add_service(health)
@@ -190,6 +208,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         registry,
         serve,
         closing,
+        metrics_addr,
     })
 }
 

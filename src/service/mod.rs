@@ -18,6 +18,7 @@ use crate::proto::shaping_server::Shaping;
 use crate::proto::{self};
 use crate::registry::{Registry, TaskHandle};
 use crate::session::validate_task_id;
+use crate::telemetry::Metrics;
 use convert::{config_input, pool_proto, task_proto, trajectory_input};
 
 /// The Shaping service over a [`Registry`].
@@ -29,6 +30,7 @@ pub struct ShapingService {
     /// `Some`: the caller of requests without one (a server without credentials, the
     /// embedded engine).
     open_caller: Option<Caller>,
+    metrics: Option<Arc<Metrics>>,
 }
 
 impl ShapingService {
@@ -40,7 +42,14 @@ impl ShapingService {
             registry,
             shutdown,
             open_caller: Some(Caller::open()),
+            metrics: None,
         }
+    }
+
+    /// Records each Shape stream's batches into `metrics` (nothing with `None`).
+    pub fn with_metrics(mut self, metrics: Option<Arc<Metrics>>) -> ShapingService {
+        self.metrics = metrics;
+        self
     }
 
     /// Requires a [`Caller`] on every request (credentials are on): a request without
@@ -184,6 +193,7 @@ impl Shaping for ShapingService {
             self.registry.clone(),
             self.shutdown.clone(),
             (caller, slot),
+            self.metrics.clone(),
             inbound,
             tx,
         ));

@@ -2,7 +2,7 @@
 //! [`StreamSession`]: `Open`, then one `ShapedBatch` per `StepBatch`.
 
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc::Sender;
 use tokio_util::sync::CancellationToken;
@@ -15,6 +15,7 @@ use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
 use crate::registry::Registry;
 use crate::session::{OpenRequest, StreamSession};
+use crate::telemetry::Metrics;
 
 type Tx = Sender<Result<ShapeResponse, Status>>;
 
@@ -68,6 +69,7 @@ async fn serve(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
     caller: &Caller,
+    metrics: Option<Arc<Metrics>>,
     mut inbound: Streaming<ShapeRequest>,
     tx: &Tx,
 ) -> End {
@@ -101,6 +103,8 @@ async fn serve(
         return End::ClientDone;
     }
     tracing::debug!(task = %session.task().id(), num_envs = session.num_envs(), "stream opened");
+    // The store's key (`tenant@id`), as the commit metrics see it.
+    let meter = metrics.map(|m| m.shape(session.task().key()));
 
     let mut scores = Vec::new();
     loop {
@@ -114,8 +118,14 @@ async fn serve(
         if let Err(e) = caller.take_steps(batch.rewards.len()) {
             return e.into();
         }
+        let started = meter.as_ref().map(|_| Instant::now());
         let shaped = match session.step(&batch_view(&batch, &mut scores)).await {
-            Ok(shaped) => shaped_proto(&shaped),
+            Ok(shaped) => {
+                if let (Some(m), Some(t)) = (&meter, started) {
+                    m.batch(shaped.outputs.len(), shaped.episodes_ended, t.elapsed());
+                }
+                shaped_proto(&shaped)
+            }
             Err(e) => return e.into(),
         };
         let msg = ShapeResponse {
@@ -133,10 +143,11 @@ pub(super) async fn run(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
     (caller, _slot): (Caller, StreamSlot),
+    metrics: Option<Arc<Metrics>>,
     inbound: Streaming<ShapeRequest>,
     tx: Tx,
 ) {
-    match serve(registry, shutdown, &caller, inbound, &tx).await {
+    match serve(registry, shutdown, &caller, metrics, inbound, &tx).await {
         End::ClientDone => {}
         End::Fail(status) => {
             tracing::debug!(code = ?status.code(), message = status.message(), "stream ended with an error");

@@ -82,6 +82,8 @@ pub struct Shaped<'s> {
     pub outputs: &'s [StepOutput],
     /// The pool version after the batch.
     pub pool_version: u64,
+    /// Episode ends of the batch offered to the pool (re-sent ones not counted).
+    pub episodes_ended: usize,
 }
 
 /// One open stream on one task.
@@ -286,6 +288,7 @@ impl StreamSession {
             });
         }
         self.task.count_steps(entries.len());
+        let episodes_ended = ops.len();
         if let Some(w) = writer {
             let marks = self.client_id.as_deref().map(|c| (c, ended.as_slice()));
             pool = self.task.commit_ends(w, ops, marks).await?.pool;
@@ -293,6 +296,7 @@ impl StreamSession {
         Ok(Shaped {
             outputs: &self.outputs,
             pool_version: pool.version(),
+            episodes_ended,
         })
     }
 

@@ -1,0 +1,298 @@
+//! Prometheus metrics (`tamrm serve --metrics-listen ADDR`, docs/deployment.md lists
+//! them): one [`Metrics`] per server, recorded by
+//! - [`GrpcMetricsLayer`], a tower layer around the whole gRPC router: every RPC's start,
+//!   end (with its final `grpc-status`) and duration;
+//! - [`ShapeMetrics`], held by each open Shape stream: one batch's latency, entries and
+//!   episode ends, a few atomic operations per batch (nothing per entry);
+//! - [`MeteredStore`], a [`Store`](crate::store::Store) decorator: store commits' latency
+//!   and the pool changes they made;
+//! - the task gauge, read from the registry when scraped.
+//!
+//! With metrics off nothing is recorded: the layer passes requests through, streams hold
+//! no [`ShapeMetrics`] and the store is not wrapped.
+//!
+//! Label cardinality is bounded: gRPC labels come from the served services' descriptors
+//! (an unknown path is `unknown`), and the per-task label names the first
+//! [`MAX_TASK_LABELS`] tasks seen and [`OTHER_TASKS`] for the rest.
+
+mod grpc;
+mod http;
+mod store;
+
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::time::Duration;
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::Histogram;
+
+pub use grpc::{GrpcMetricsLayer, GrpcMetricsService, MeteredBody, ResponseFuture};
+pub use http::listen;
+pub use store::{metered, MeteredStore};
+
+/// Tasks that get their own `task` label value; later tasks share [`OTHER_TASKS`].
+pub const MAX_TASK_LABELS: usize = 100;
+
+/// The `task` label value of every task past the first [`MAX_TASK_LABELS`] (`~` is not
+/// allowed in task ids, so it never names a real task).
+pub const OTHER_TASKS: &str = "~other";
+
+/// Upper bounds of the latency histograms (batch, store commit), seconds: 5 µs to 1 s.
+const LATENCY_BUCKETS: [f64; 17] = [
+    5e-6, 1e-5, 2.5e-5, 5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 0.01, 0.025, 0.05, 0.1, 0.25,
+    0.5, 1.0,
+];
+
+/// Upper bounds of the batch size histogram, entries: 1, 2, 4, … 65536.
+fn size_buckets() -> impl Iterator<Item = f64> {
+    (0..=16).map(|i| f64::from(1u32 << i))
+}
+
+/// The `task` label.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, EncodeLabelSet)]
+struct TaskLabel {
+    task: Arc<str>,
+}
+
+/// Names the first `max` tasks it is asked about by their id, every later one
+/// [`OTHER_TASKS`]. A task keeps its label for the life of the server (also when deleted
+/// and created again), so a counter's series never changes name.
+#[derive(Debug)]
+struct TaskLabels {
+    max: usize,
+    named: parking_lot::Mutex<HashSet<Arc<str>>>,
+    other: Arc<str>,
+}
+
+impl TaskLabels {
+    fn new(max: usize) -> TaskLabels {
+        TaskLabels {
+            max,
+            named: parking_lot::Mutex::new(HashSet::new()),
+            other: Arc::from(OTHER_TASKS),
+        }
+    }
+
+    fn label(&self, task: &str) -> TaskLabel {
+        let mut named = self.named.lock();
+        let task = match named.get(task) {
+            Some(name) => name.clone(),
+            None if named.len() < self.max => {
+                let name: Arc<str> = Arc::from(task);
+                named.insert(name.clone());
+                name
+            }
+            None => self.other.clone(),
+        };
+        TaskLabel { task }
+    }
+}
+
+/// Every metric of one server, and the registry that encodes them.
+pub struct Metrics {
+    registry: prometheus_client::registry::Registry,
+    grpc: grpc::GrpcMetrics,
+    steps: Family<TaskLabel, Counter>,
+    episodes: Family<TaskLabel, Counter>,
+    pool_changes: Family<TaskLabel, Counter>,
+    batch_seconds: Histogram,
+    batch_entries: Histogram,
+    commit_seconds: Histogram,
+    open_streams: Gauge,
+    tasks: Gauge,
+    labels: TaskLabels,
+}
+
+impl std::fmt::Debug for Metrics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Metrics").finish_non_exhaustive()
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Metrics {
+        Metrics::new()
+    }
+}
+
+impl Metrics {
+    /// Every metric at zero, registered.
+    pub fn new() -> Metrics {
+        Metrics::with_task_labels(MAX_TASK_LABELS)
+    }
+
+    fn with_task_labels(max_task_labels: usize) -> Metrics {
+        let mut registry = prometheus_client::registry::Registry::default();
+        let grpc = grpc::GrpcMetrics::register(&mut registry);
+        let m = Metrics {
+            grpc,
+            steps: Family::default(),
+            episodes: Family::default(),
+            pool_changes: Family::default(),
+            batch_seconds: Histogram::new(LATENCY_BUCKETS),
+            batch_entries: Histogram::new(size_buckets()),
+            commit_seconds: Histogram::new(LATENCY_BUCKETS),
+            open_streams: Gauge::default(),
+            tasks: Gauge::default(),
+            labels: TaskLabels::new(max_task_labels),
+            registry: prometheus_client::registry::Registry::default(),
+        };
+        registry.register(
+            "tamrm_steps_shaped",
+            "Step entries shaped by Shape streams",
+            m.steps.clone(),
+        );
+        registry.register(
+            "tamrm_episodes_completed",
+            "Episodes ended by Shape streams (offered to the pool)",
+            m.episodes.clone(),
+        );
+        registry.register(
+            "tamrm_pool_changes",
+            "Pool operations that changed a pool (trajectories stored, resets)",
+            m.pool_changes.clone(),
+        );
+        registry.register(
+            "tamrm_batch_seconds",
+            "Time of one StepBatch through the session (validation, shaping, commit)",
+            m.batch_seconds.clone(),
+        );
+        registry.register(
+            "tamrm_batch_entries",
+            "Entries per StepBatch",
+            m.batch_entries.clone(),
+        );
+        registry.register(
+            "tamrm_store_commit_seconds",
+            "Time of one store commit (episode ends of a batch, AddTrajectory, ResetPool)",
+            m.commit_seconds.clone(),
+        );
+        registry.register(
+            "tamrm_open_streams",
+            "Open Shape streams",
+            m.open_streams.clone(),
+        );
+        registry.register("tamrm_tasks", "Tasks held", m.tasks.clone());
+        Metrics { registry, ..m }
+    }
+
+    /// The recorder of one open Shape stream on `task`: counts as an open stream until
+    /// dropped.
+    pub fn shape(&self, task: &str) -> ShapeMetrics {
+        let label = self.labels.label(task);
+        self.open_streams.inc();
+        ShapeMetrics {
+            open_streams: self.open_streams.clone(),
+            steps: self.steps.get_or_create_owned(&label),
+            episodes: self.episodes.get_or_create_owned(&label),
+            batch_seconds: self.batch_seconds.clone(),
+            batch_entries: self.batch_entries.clone(),
+        }
+    }
+
+    fn commit(&self, task: &str, elapsed: Duration, changes: usize) {
+        self.commit_seconds.observe(elapsed.as_secs_f64());
+        if changes > 0 {
+            self.pool_changes
+                .get_or_create(&self.labels.label(task))
+                .inc_by(changes as u64);
+        }
+    }
+
+    /// The Prometheus text exposition (format 0.0.4) of every metric, with the task gauge
+    /// read from `tasks` now.
+    pub fn render(&self, tasks: &crate::registry::Registry) -> Result<String, std::fmt::Error> {
+        let count = tasks.len();
+        self.tasks.set(i64::try_from(count).unwrap_or(i64::MAX));
+        let mut text = String::new();
+        prometheus_client::encoding::prometheus_text::encode(&mut text, &self.registry)?;
+        Ok(text)
+    }
+}
+
+/// The metrics one Shape stream records, resolved when it opens: per batch, two
+/// histogram observations and one or two counter additions. Not `Clone`: it is the
+/// stream's count in `tamrm_open_streams`, given back when dropped.
+#[derive(Debug)]
+pub struct ShapeMetrics {
+    open_streams: Gauge,
+    steps: Counter,
+    episodes: Counter,
+    batch_seconds: Histogram,
+    batch_entries: Histogram,
+}
+
+impl ShapeMetrics {
+    /// Records one shaped batch: its `entries`, the `episodes` it ended and the time it
+    /// took.
+    pub fn batch(&self, entries: usize, episodes: usize, elapsed: Duration) {
+        self.batch_seconds.observe(elapsed.as_secs_f64());
+        self.batch_entries.observe(entries as f64);
+        self.steps.inc_by(entries as u64);
+        if episodes > 0 {
+            self.episodes.inc_by(episodes as u64);
+        }
+    }
+}
+
+impl Drop for ShapeMetrics {
+    fn drop(&mut self) {
+        self.open_streams.dec();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn task_labels_are_capped_and_stable() {
+        let labels = TaskLabels::new(2);
+        let name = |t: &str| labels.label(t).task.to_string();
+        assert_eq!(name("a"), "a");
+        assert_eq!(name("b"), "b");
+        assert_eq!(name("c"), OTHER_TASKS, "past the cap");
+        assert_eq!(name("a"), "a", "a named task keeps its label");
+        assert_eq!(name("d"), OTHER_TASKS);
+        assert_eq!(labels.named.lock().len(), 2);
+    }
+
+    #[test]
+    fn series_past_the_cap_share_one_label() {
+        let m = Metrics::with_task_labels(3);
+        for i in 0..50 {
+            m.shape(&format!("task-{i}"))
+                .batch(2, 1, Duration::from_micros(7));
+        }
+        let registry = crate::registry::Registry::open(
+            Arc::new(crate::store::MemoryStore::new()),
+            crate::limits::Limits::default(),
+        );
+        let registry = futures::executor::block_on(registry).unwrap().0;
+        let text = m.render(&registry).unwrap();
+        let series: Vec<&str> = text
+            .lines()
+            .filter(|l| l.starts_with("tamrm_steps_shaped_total{"))
+            .collect();
+        assert_eq!(series.len(), 4, "3 named tasks and the rest: {series:?}");
+        assert!(
+            text.contains("tamrm_steps_shaped_total{task=\"~other\"} 94\n"),
+            "{text}"
+        );
+        assert!(text.contains("tamrm_episodes_completed_total{task=\"task-0\"} 1\n"));
+        assert!(text.contains("tamrm_batch_entries_count 50\n"), "{text}");
+        assert!(
+            text.contains("tamrm_batch_seconds_bucket{le=\"1e-05\"} 50\n"),
+            "{text}"
+        );
+        assert!(text.contains("tamrm_tasks 0\n"));
+        assert!(text.contains("tamrm_open_streams 0\n"), "streams closed");
+        let open = m.shape("task-0");
+        let text = m.render(&registry).unwrap();
+        assert!(text.contains("tamrm_open_streams 1\n"), "{text}");
+        drop(open);
+    }
+}

@@ -1,0 +1,82 @@
+//! A [`Store`] decorator that times every commit (`tamrm_store_commit_seconds`) and counts
+//! the pool operations that changed a pool (`tamrm_pool_changes_total`); every other call
+//! goes straight through.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use crate::core::{Pool, TaskConfig};
+use crate::store::{Committed, Counters, PoolChanged, PoolOp, Store, StoreError, StoredTask};
+
+use super::Metrics;
+
+/// `inner`, with its commits measured into a [`Metrics`].
+pub struct MeteredStore {
+    inner: Arc<dyn Store>,
+    metrics: Arc<Metrics>,
+}
+
+impl MeteredStore {
+    /// Wraps `inner`.
+    pub fn new(inner: Arc<dyn Store>, metrics: Arc<Metrics>) -> MeteredStore {
+        MeteredStore { inner, metrics }
+    }
+}
+
+#[async_trait::async_trait]
+impl Store for MeteredStore {
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+
+    async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
+        self.inner.load().await
+    }
+
+    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+        self.inner.create_task(id, config).await
+    }
+
+    async fn delete_task(&self, id: &str) -> Result<(), StoreError> {
+        self.inner.delete_task(id).await
+    }
+
+    async fn commit(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<Committed, StoreError> {
+        let start = Instant::now();
+        let committed = self.inner.commit(id, base, ops, counters).await?;
+        let changes = committed.changed.iter().filter(|&&c| c).count();
+        self.metrics.commit(id, start.elapsed(), changes);
+        Ok(committed)
+    }
+
+    async fn save_counters(
+        &self,
+        id: &str,
+        pool: Arc<Pool>,
+        counters: Counters,
+    ) -> Result<(), StoreError> {
+        self.inner.save_counters(id, pool, counters).await
+    }
+
+    async fn load_pool(&self, id: &str) -> Result<Option<Pool>, StoreError> {
+        self.inner.load_pool(id).await
+    }
+
+    fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
+        self.inner.changes()
+    }
+}
+
+/// `store`, measured into `metrics` when there are metrics.
+pub fn metered(store: Arc<dyn Store>, metrics: Option<&Arc<Metrics>>) -> Arc<dyn Store> {
+    match metrics {
+        Some(m) => Arc::new(MeteredStore::new(store, m.clone())),
+        None => store,
+    }
+}

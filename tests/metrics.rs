@@ -1,0 +1,216 @@
+//! Prometheus metrics end to end: a real server on 127.0.0.1:0 with `/metrics` on its own
+//! port, real RPCs, and the counters read back over HTTP.
+
+mod common;
+
+use common::{batch, connect, create, discrete, get_task, start_server, Stream};
+use tamrm::proto;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// `GET path` over a fresh HTTP/1.1 connection: (status code, body).
+async fn http_get(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
+    let mut conn = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    conn.write_all(req.as_bytes()).await.unwrap();
+    let mut raw = String::new();
+    conn.read_to_string(&mut raw).await.unwrap();
+    let (head, body) = raw.split_once("\r\n\r\n").expect("an HTTP response");
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no status line: {head}"));
+    (status, body.to_string())
+}
+
+/// The exposition of the server's metrics endpoint.
+async fn scrape(addr: std::net::SocketAddr) -> Metrics {
+    let (status, body) = http_get(addr, "/metrics").await;
+    assert_eq!(status, 200, "{body}");
+    Metrics(body)
+}
+
+struct Metrics(String);
+
+impl Metrics {
+    /// The value of the sample `name` whose labels are exactly `labels`; `None` if there
+    /// is no such series.
+    fn get(&self, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
+        self.0.lines().find_map(|line| {
+            let (series, value) = line.rsplit_once(' ')?;
+            let (n, rest) = match series.split_once('{') {
+                Some((n, rest)) => (n, rest.strip_suffix('}')?),
+                None => (series, ""),
+            };
+            let mut got: Vec<&str> = rest.split(',').filter(|l| !l.is_empty()).collect();
+            let mut want: Vec<String> =
+                labels.iter().map(|(k, v)| format!("{k}=\"{v}\"")).collect();
+            got.sort_unstable();
+            want.sort_unstable();
+            (n == name && got == want).then(|| value.parse().unwrap())
+        })
+    }
+
+    /// Like [`Metrics::get`], but the series must exist.
+    #[track_caller]
+    fn value(&self, name: &str, labels: &[(&str, &str)]) -> f64 {
+        self.get(name, labels)
+            .unwrap_or_else(|| panic!("no series {name}{labels:?} in:\n{}", self.0))
+    }
+
+    /// `grpc_server_*` labels of a method.
+    fn rpc<'a>(kind: &'a str, service: &'a str, method: &'a str) -> Vec<(&'a str, &'a str)> {
+        vec![
+            ("grpc_type", kind),
+            ("grpc_service", service),
+            ("grpc_method", method),
+        ]
+    }
+
+    #[track_caller]
+    fn handled(&self, kind: &str, service: &str, method: &str, code: &str) -> f64 {
+        let mut labels = Metrics::rpc(kind, service, method);
+        labels.push(("grpc_code", code));
+        self.value("grpc_server_handled_total", &labels)
+    }
+}
+
+const SHAPING: &str = "tamrm.v1.Shaping";
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rpcs_and_shaping_move_the_counters() {
+    let server = start_server(None, |s| {
+        s.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    })
+    .await;
+    let maddr = server.metrics_addr().expect("metrics are on");
+    assert_ne!(maddr.port(), 0);
+    assert_eq!(http_get(maddr, "/").await.0, 404);
+    let m = scrape(maddr).await;
+    assert_eq!(m.value("tamrm_tasks", &[]), 0.0);
+    assert_eq!(m.value("tamrm_open_streams", &[]), 0.0);
+
+    let mut c = connect(server.addr()).await;
+    create(&mut c, "m", discrete(3, 8, 2, 0, 1)).await;
+    get_task(&mut c, "m").await;
+    let missing = c
+        .get_task(proto::GetTaskRequest {
+            task_id: "nope".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(missing.code(), tonic::Code::NotFound);
+
+    let m = scrape(maddr).await;
+    assert_eq!(m.value("tamrm_tasks", &[]), 1.0);
+    let get = Metrics::rpc("unary", SHAPING, "GetTask");
+    assert_eq!(m.value("grpc_server_started_total", &get), 2.0);
+    assert_eq!(m.handled("unary", SHAPING, "GetTask", "OK"), 1.0);
+    assert_eq!(m.handled("unary", SHAPING, "GetTask", "NotFound"), 1.0);
+    assert_eq!(m.handled("unary", SHAPING, "CreateTask", "OK"), 1.0);
+    assert_eq!(m.value("grpc_server_handling_seconds_count", &get), 2.0);
+
+    // A Shape stream: 3 batches of 2 envs, 3 episode ends over 2 batches.
+    let shape = Metrics::rpc("bidi_stream", SHAPING, "Shape");
+    let (mut s, _) = Stream::open(&mut c, "m", 2).await.unwrap();
+    s.step(batch(&[0, 1], &[1.0, 1.0], &[false, false]))
+        .await
+        .unwrap();
+    s.step(batch(&[1, 2], &[1.0, 1.0], &[true, true]))
+        .await
+        .unwrap();
+    s.step(batch(&[2, 0], &[1.0, 1.0], &[true, false]))
+        .await
+        .unwrap();
+
+    let m = scrape(maddr).await;
+    assert_eq!(m.value("grpc_server_started_total", &shape), 1.0);
+    assert_eq!(
+        m.get("grpc_server_handling_seconds_count", &shape),
+        None,
+        "an open stream is not handled yet"
+    );
+    assert_eq!(m.value("tamrm_open_streams", &[]), 1.0);
+    let task = [("task", "m")];
+    assert_eq!(m.value("tamrm_steps_shaped_total", &task), 6.0);
+    assert_eq!(m.value("tamrm_episodes_completed_total", &task), 3.0);
+    assert_eq!(m.value("tamrm_pool_changes_total", &task), 3.0);
+    assert_eq!(m.value("tamrm_batch_entries_count", &[]), 3.0);
+    assert_eq!(m.value("tamrm_batch_entries_sum", &[]), 6.0);
+    assert_eq!(m.value("tamrm_batch_seconds_count", &[]), 3.0);
+    assert_eq!(
+        m.value("tamrm_store_commit_seconds_count", &[]),
+        2.0,
+        "one commit per batch with episode ends"
+    );
+
+    let mut rx = s.close();
+    assert!(rx.message().await.unwrap().is_none());
+    let m = scrape(maddr).await;
+    assert_eq!(m.handled("bidi_stream", SHAPING, "Shape", "OK"), 1.0);
+    assert_eq!(m.value("grpc_server_handling_seconds_count", &shape), 1.0);
+    assert_eq!(m.value("tamrm_open_streams", &[]), 0.0);
+
+    // A stream that fails after its headers went out ends with the status in its trailers.
+    let err = Stream::open(&mut c, "nope", 1).await.err().unwrap();
+    assert_eq!(err.code(), tonic::Code::NotFound);
+    // Paths the server does not serve share one `unknown` series.
+    for path in ["/no.Such/Method", "/tamrm.v1.Shaping/Nope"] {
+        let mut grpc = tonic::client::Grpc::new(
+            tonic::transport::Channel::from_shared(format!("http://{}", server.addr()))
+                .unwrap()
+                .connect()
+                .await
+                .unwrap(),
+        );
+        grpc.ready().await.unwrap();
+        let codec = tonic_prost::ProstCodec::<(), ()>::default();
+        let path = http::uri::PathAndQuery::from_static(path);
+        let status = grpc
+            .unary(tonic::Request::new(()), path, codec)
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), tonic::Code::Unimplemented);
+    }
+    let m = scrape(maddr).await;
+    assert_eq!(m.handled("bidi_stream", SHAPING, "Shape", "NotFound"), 1.0);
+    let unknown = Metrics::rpc("unknown", "unknown", "unknown");
+    assert_eq!(m.value("grpc_server_started_total", &unknown), 2.0);
+    assert_eq!(
+        m.handled("unknown", "unknown", "unknown", "Unimplemented"),
+        2.0
+    );
+    assert_eq!(m.value("tamrm_steps_shaped_total", &task), 6.0);
+
+    // A stream the client abandons (reset, no trailers sent) is handled as Canceled once
+    // the server drops its response.
+    let (mut s, _) = Stream::open(&mut c, "m", 1).await.unwrap();
+    s.step(batch(&[0], &[1.0], &[false])).await.unwrap();
+    drop(s);
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    loop {
+        let m = scrape(maddr).await;
+        let mut labels = Metrics::rpc("bidi_stream", SHAPING, "Shape");
+        labels.push(("grpc_code", "Canceled"));
+        if m.get("grpc_server_handled_total", &labels) == Some(1.0)
+            && m.value("tamrm_open_streams", &[]) == 0.0
+        {
+            assert_eq!(m.value("tamrm_steps_shaped_total", &task), 7.0);
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the abandoned stream is not handled as Canceled:\n{}",
+            m.0
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    server.shutdown().await;
+}
+
+#[tokio::test]
+async fn metrics_are_off_by_default() {
+    let server = start_server(None, |_| {}).await;
+    assert_eq!(server.metrics_addr(), None);
+    server.shutdown().await;
+}
