@@ -87,10 +87,21 @@ def arm_weights(experiment: Experiment, arm: Arm, variant: str = "clean") -> tup
     return cfg["alpha"], cfg["beta"]
 
 
-#: Settings that only scale or gate a shaping term: alpha and beta (of the TAMRM arm and,
-#: ``pbrs_beta``, of the PBRS arm) and ``gate_potential``. The plain arm zeroes both terms,
-#: so its runs do not depend on them.
-_SHAPING_ONLY = ("alpha", "beta", "pbrs_beta", "gate_potential")
+#: Settings that only the shaping terms read: their weights alpha and beta (of the TAMRM
+#: arm and, ``pbrs_beta``, of the PBRS arm), ``gate_potential``, and the pool and window of
+#: the kNN term (``pool_capacity``, ``k``, ``start_step``, ``min_pool_size``). The plain arm
+#: zeroes both terms, so its rewards, and so its runs, do not depend on them (only the
+#: server's diagnostics of r(t), which plain does not use, do).
+_SHAPING_ONLY = (
+    "alpha",
+    "beta",
+    "pbrs_beta",
+    "gate_potential",
+    "pool_capacity",
+    "k",
+    "start_step",
+    "min_pool_size",
+)
 
 
 def _without_shaping(settings: Any) -> Any:

@@ -55,6 +55,26 @@ def test_clean_gated_shares_the_plain_runs_of_clean():
         assert len(both) == 7
 
 
+def test_maze_pool_sizes_share_the_plain_arm():
+    maze = EXPERIMENTS["maze"]
+    for small, large in (("authors-3", "authors-10"), ("authors-tuned-3", "authors-tuned-10")):
+        assert runs_variant(maze, large, "plain") == small
+        assert runs_variant(maze, large, "tamrm") == large
+        specs = make_specs("paper", 1, ["maze"], ["plain", "knn"], variants=[small, large])
+        assert [s.key for s in specs] == [
+            f"maze/{small}/plain/seed0",
+            f"maze/{small}/knn/seed0",
+            f"maze/{large}/knn/seed0",
+        ]
+        assert specs[1].task_config()["pool_capacity"] == 3
+        assert specs[2].task_config()["pool_capacity"] == 10
+    # The observation bug is not a shaping setting: its variants run their own plain.
+    assert runs_variant(maze, "authors-bug-3", "plain") == "authors-bug-3"
+    assert plain_key(maze, maze.variant("authors-bug-3")) != plain_key(
+        maze, maze.variant("authors-3")
+    )
+
+
 def test_every_declared_share_has_the_same_plain_settings():
     shares = [(e, v) for e in EXPERIMENTS.values() for v in e.variants if v.plain_from]
     assert shares

@@ -52,7 +52,8 @@ class Variant:
             grid never schedules it.
         plain_from: The variant whose plain runs this one uses instead of its own, when
             the two differ only in shaping settings (signs, ``pbrs_beta``,
-            ``gate_potential``), which the plain arm (alpha = beta = 0) never reads: the
+            ``gate_potential``, the kNN pool), which the plain arm (alpha = beta = 0) never
+            reads: the
             grid runs plain once for both, and the report compares both variants' arms
             with the same plain runs (``configs.plain_key`` checks the declaration).
     """

@@ -90,6 +90,8 @@ def _authors(pool: int, bug: bool, tuned: bool = False) -> Variant:
             **(TUNED_MAZE_DQN if tuned else {}),
         },
         AUTHORS_BUDGETS,
+        # |D| = k only shapes: the pool of 10 shares the plain runs of the pool of 3.
+        plain_from=name.replace("-10", "-3") if pool != 3 else None,
     )
 
 
