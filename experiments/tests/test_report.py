@@ -136,3 +136,11 @@ def test_previous_runs_show_as_the_first_reports_variant(tmp_path):
     # Nothing of it is pending.
     status = text.split("## Status of the grid")[1].split("## Pilot")[0]
     assert all(line.endswith("| 0 |") for line in status.splitlines() if "first report" in line)
+
+
+def test_labels_fit_in_a_markdown_table_cell():
+    from tamrm_experiments.configs import EXPERIMENTS
+
+    labels = [v.label for e in EXPERIMENTS.values() for v in e.variants]
+    labels += [a.label for a in ARMS.values()] + [e.title for e in EXPERIMENTS.values()]
+    assert not [label for label in labels if "|" in label]

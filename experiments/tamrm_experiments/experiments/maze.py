@@ -63,10 +63,10 @@ TUNED_MAZE_DQN = {
 def _authors(pool: int, bug: bool, tuned: bool = False) -> Variant:
     if tuned:
         name = f"authors-tuned-{pool}"
-        label = f"authors (their DQN tuned to learn, |D| = k = {pool})"
+        label = f"authors (their DQN tuned to learn, pool = k = {pool})"
     else:
         name = f"authors{'-bug' if bug else ''}-{pool}"
-        label = f"authors (their DQN, |D| = k = {pool}" + (
+        label = f"authors (their DQN, pool = k = {pool}" + (
             ", their observation bug)" if bug else ", observation updated)"
         )
     return Variant(
