@@ -518,6 +518,18 @@ DEVIATIONS = [
     "+1 at the goal, -1 on the time-out at 10 000 steps, score +-100/t; |D| = 3 (their "
     "run) and 10 (the paper); *bug*: their script's `ob_ = ob`, so the agent always sees "
     "the start cell (as their saved results ran), and without it.",
+    "Authors' maze, *tuned*: their DQN does not learn the maze in 200 episodes even "
+    "without the bug (plain ~500-800 steps per episode at the end, a random walk's 817), "
+    "so the maze claims cannot be tested on it. The pilot (`docs/reproduction/"
+    "maze-pilot.md`, `python -m tamrm_experiments.pilot`) found three changes needed "
+    "together: the cell one-hot (64 inputs) instead of the pixel coordinates, 64 hidden "
+    "units, epsilon 1 -> 0.1 by 1e-4 per learning step; and learning from step 1 000 "
+    "instead of 20 000 (a random start twice as long as a learning run). Everything else "
+    "(loop, window, gating, signs, overrides) is theirs.",
+    "Shared plain arms: variants that differ only in what the shaping terms alone read "
+    "(signs, PBRS-only beta, `gate_potential`, the kNN pool) share one set of plain runs "
+    "(`Variant.plain_from`): mountain car's paper's signs use their signs' plain runs, "
+    "`clean-gated` uses `clean`'s, the maze's pool of 10 its pool of 3's.",
     "**Clean fidelity**: Stable-Baselines3 learners on `tamrm.sb3.ShapedVecEnv` (one "
     "gRPC round trip per environment step, the potential from the model's own estimates: "
     "A2C critic V(s), DQN max_a Q(s, a) of the online network), the service's defaults "
