@@ -28,16 +28,20 @@ from tamrm_experiments.learners import ActorCritic, TutorialDQN
 __all__ = ["make_authors_env", "train_authors"]
 
 
-def make_authors_env(spec: RunSpec) -> Any:
+def make_authors_env(spec: RunSpec, settings: dict[str, Any] | None = None) -> Any:
     """The authors' environment: unwrapped (no Gym time limit; the loop caps episodes),
-    and for the maze their observation, the agent's 4 canvas coordinates in pixels."""
+    and for the maze their observation, the agent's 4 canvas coordinates in pixels, or
+    with ``settings["observation"] == "onehot"`` the cell one-hot (64 inputs)."""
     import gymnasium as gym
 
     env = EXPERIMENTS[spec.experiment].env
     if env.startswith("maze"):
-        from tamrm_experiments.envs import MazeEnv
+        from tamrm_experiments.envs import MazeEnv, OneHotCell
 
-        return CanvasCoords(MazeEnv(max_steps=spec.budget.max_episode_steps))
+        maze = MazeEnv(max_steps=spec.budget.max_episode_steps)
+        if (settings or {}).get("observation") == "onehot":
+            return OneHotCell(maze)
+        return CanvasCoords(maze)
     return gym.make({"cartpole": "CartPole-v1", "mountaincar": "MountainCar-v0"}[env]).unwrapped
 
 
@@ -70,26 +74,45 @@ class CanvasCoords:
         self.env.close()
 
 
+class ScaledObservation:
+    """``env`` with its observations divided by ``scale``."""
+
+    def __init__(self, env: Any, scale: float) -> None:
+        self.env, self.scale = env, scale
+        self.action_space = env.action_space
+        self.observation_space = env.observation_space
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        return np.asarray(obs, np.float64) / self.scale, info
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        obs, r, term, trunc, info = self.env.step(action)
+        return np.asarray(obs, np.float64) / self.scale, r, term, trunc, info
+
+    def close(self) -> None:
+        self.env.close()
+
+
 def _make_learner(
     settings: dict[str, Any], n_features: int, n_actions: int, rng: Any, gamma: float
 ):
     kind = settings["learner"]
+    # A variant may change the learner's settings (``learner_kwargs``: a tuned variant).
+    extra = dict(settings.get("learner_kwargs", {}))
     if kind == "actor_critic":
-        return ActorCritic(n_features, n_actions, rng, gamma=gamma)
+        return ActorCritic(n_features, n_actions, rng, gamma=gamma, **extra)
     if kind == "maze_dqn":  # Maze_grid/RL_brain.py and run_maze.py
-        return TutorialDQN(
-            n_features,
-            n_actions,
-            rng,
-            lr=0.01,
-            gamma=gamma,
-            greedy_increment=None,
-            replace_target_iter=200,
-            memory_size=20_000,
-            hidden=10,
-            optimizer="adam",
-        )
-    return TutorialDQN(n_features, n_actions, rng, gamma=gamma)
+        kwargs = {
+            "lr": 0.01,
+            "greedy_increment": None,
+            "replace_target_iter": 200,
+            "memory_size": 20_000,
+            "hidden": 10,
+            "optimizer": "adam",
+        }
+        return TutorialDQN(n_features, n_actions, rng, gamma=gamma, **{**kwargs, **extra})
+    return TutorialDQN(n_features, n_actions, rng, gamma=gamma, **extra)
 
 
 class ShapingMismatch(AssertionError):
@@ -101,22 +124,29 @@ def train_authors(
     session: Any,
     record: Callable[[dict[str, Any]], None],
     gate_on_server: bool,
+    settings: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train ``spec``'s learner for its budget, shaping every step through ``session``.
 
     ``record`` gets one dict per finished episode (the CSV row's fields that the loop
     knows). ``gate_on_server``: the task was created with ``gate_potential``; otherwise
     the loop applies the gate itself to the returned parts (a server without v1.1).
+    ``settings``: the variant's settings to use instead of ``spec``'s (the pilots try
+    changes to a learner this way, ``tamrm_experiments.pilot``).
     Returns totals (episodes, total_steps, stopped_by_steps).
     """
     exp = EXPERIMENTS[spec.experiment]
-    var = exp.variant(spec.variant)
-    settings = var.settings
+    if settings is None:
+        settings = exp.variant(spec.variant).settings
     cfg = spec.task_config()
     alpha, beta, gate = cfg["alpha"], cfg["beta"], cfg["gate_potential"]
     budget = spec.budget
     rng = np.random.default_rng(spec.seed)
-    env = make_authors_env(spec)
+    env = make_authors_env(spec, settings)
+    # A tuned variant may scale the observation (e.g. the maze's pixel coordinates).
+    obs_scale = settings.get("obs_scale")
+    if obs_scale is not None:
+        env = ScaledObservation(env, float(obs_scale))
     n_features = env.observation_space.shape[0]
     n_actions = int(env.action_space.n)
     learner = _make_learner(settings, n_features, n_actions, rng, cfg["gamma"])

@@ -7,6 +7,7 @@ network, hyper-parameters and seeds; arms differ only in the shaping weights alp
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -27,6 +28,8 @@ __all__ = [
     "all_variants",
     "arm_weights",
     "make_specs",
+    "plain_key",
+    "runs_variant",
     "task_config",
 ]
 
@@ -82,6 +85,69 @@ def arm_weights(experiment: Experiment, arm: Arm, variant: str = "clean") -> tup
     """Return (alpha, beta) of ``arm`` in ``experiment`` (and ``variant``)."""
     cfg = task_config(experiment, experiment.variant(variant), arm)
     return cfg["alpha"], cfg["beta"]
+
+
+#: Settings that only the shaping terms read: their weights alpha and beta (of the TAMRM
+#: arm and, ``pbrs_beta``, of the PBRS arm), ``gate_potential``, and the pool and window of
+#: the kNN term (``pool_capacity``, ``k``, ``start_step``, ``min_pool_size``). The plain arm
+#: zeroes both terms, so its rewards, and so its runs, do not depend on them (only the
+#: server's diagnostics of r(t), which plain does not use, do).
+_SHAPING_ONLY = (
+    "alpha",
+    "beta",
+    "pbrs_beta",
+    "gate_potential",
+    "pool_capacity",
+    "k",
+    "start_step",
+    "min_pool_size",
+)
+
+
+def _without_shaping(settings: Any) -> Any:
+    if isinstance(settings, dict):
+        return {k: _without_shaping(v) for k, v in settings.items() if k not in _SHAPING_ONLY}
+    return settings
+
+
+def plain_key(experiment: Experiment, variant: Variant) -> str:
+    """Everything the plain arm of ``variant`` depends on, as a canonical string: the
+    fidelity, the budgets, the variant's settings and the plain task configuration, less
+    the shaping-only settings. Two variants with equal keys have identical plain runs."""
+    cfg = task_config(experiment, variant, ARMS["plain"])
+    assert cfg["alpha"] == 0.0 and cfg["beta"] == 0.0, "the plain arm shapes nothing"
+    budgets = {p: asdict(experiment.budget(p, variant.name)) for p in sorted(PROFILES)}
+    return json.dumps(
+        {
+            "fidelity": variant.fidelity,
+            "budgets": budgets,
+            "settings": _without_shaping(variant.settings),
+            "task_config": _without_shaping(cfg),
+        },
+        sort_keys=True,
+    )
+
+
+def _plain_variant(experiment: Experiment, variant: Variant) -> Variant:
+    """The variant whose plain runs ``variant`` uses; raises if the two could differ."""
+    if variant.plain_from is None:
+        return variant
+    source = experiment.variant(variant.plain_from)
+    if source.plain_from is not None:
+        raise ValueError(f"{experiment.name}/{source.name} shares its plain arm in turn")
+    if plain_key(experiment, variant) != plain_key(experiment, source):
+        raise ValueError(
+            f"{experiment.name}/{variant.name} declares plain_from={source.name!r}, but its "
+            "plain arm differs from that variant's in more than shaping settings"
+        )
+    return source
+
+
+def runs_variant(experiment: Experiment, variant: str, arm: str) -> str:
+    """The variant under whose name the runs of ``arm`` in ``variant`` are stored:
+    ``variant`` itself, or for the plain arm the variant it shares plain with."""
+    var = experiment.variant(variant)
+    return _plain_variant(experiment, var).name if arm == "plain" else variant
 
 
 @dataclass(frozen=True)
@@ -150,7 +216,8 @@ def make_specs(
     n = prof.seeds if seeds is None else seeds
     exps = experiments or list(EXPERIMENTS)
     arm_names = arms or list(ARMS)
-    specs = []
+    specs: list[RunSpec] = []
+    seen: set[str] = set()
     for seed in range(first_seed, n):
         for name in exps:
             exp = EXPERIMENTS[name]
@@ -163,7 +230,11 @@ def make_specs(
                     continue
                 budget = exp.budget(profile, var.name)
                 for arm in arm_names:
-                    specs.append(RunSpec(name, arm, seed, profile, budget, var.name))
+                    owner = _plain_variant(exp, var) if arm == "plain" else var
+                    spec = RunSpec(name, arm, seed, profile, budget, owner.name)
+                    if spec.key not in seen:
+                        seen.add(spec.key)
+                        specs.append(spec)
     return specs
 
 

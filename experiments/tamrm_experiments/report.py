@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from tamrm_experiments.args import parser
-from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs
+from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs, runs_variant
 from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
 from tamrm_experiments.experiments.base import Claim, Metric
 from tamrm_experiments.stats import (
@@ -349,6 +349,12 @@ def _experiment_section(
         metrics[r.arm].append(run_metrics(r))
         censored[r.arm] += int(bool(r.meta.get("censored")))
     lines.append(f"Budget: {_budget_line(exp_name, runs)}.")
+    owner = runs_variant(exp, variant, "plain")
+    if owner != variant:
+        lines.append(
+            f"The plain arm is shared with *{exp.variant(owner).label}* (the same runs): "
+            "the variants differ only in shaping settings, which plain does not use."
+        )
     if len({json.dumps(r.budget, sort_keys=True) for r in runs}) > 1:
         lines += [
             "",
@@ -512,6 +518,18 @@ DEVIATIONS = [
     "+1 at the goal, -1 on the time-out at 10 000 steps, score +-100/t; |D| = 3 (their "
     "run) and 10 (the paper); *bug*: their script's `ob_ = ob`, so the agent always sees "
     "the start cell (as their saved results ran), and without it.",
+    "Authors' maze, *tuned*: their DQN does not learn the maze in 200 episodes even "
+    "without the bug (plain ~500-800 steps per episode at the end, a random walk's 817), "
+    "so the maze claims cannot be tested on it. The pilot (`docs/reproduction/"
+    "maze-pilot.md`, `python -m tamrm_experiments.pilot`) found three changes needed "
+    "together: the cell one-hot (64 inputs) instead of the pixel coordinates, 64 hidden "
+    "units, epsilon 1 -> 0.1 by 1e-4 per learning step; and learning from step 1 000 "
+    "instead of 20 000 (a random start twice as long as a learning run). Everything else "
+    "(loop, window, gating, signs, overrides) is theirs.",
+    "Shared plain arms: variants that differ only in what the shaping terms alone read "
+    "(signs, PBRS-only beta, `gate_potential`, the kNN pool) share one set of plain runs "
+    "(`Variant.plain_from`): mountain car's paper's signs use their signs' plain runs, "
+    "`clean-gated` uses `clean`'s, the maze's pool of 10 its pool of 3's.",
     "**Clean fidelity**: Stable-Baselines3 learners on `tamrm.sb3.ShapedVecEnv` (one "
     "gRPC round trip per environment step, the potential from the model's own estimates: "
     "A2C critic V(s), DQN max_a Q(s, a) of the online network), the service's defaults "
@@ -641,13 +659,10 @@ def _claim_rows(
         for claim in exp.claims:
             by_arm = {arm: [r for r in runs if r.arm == arm] for arm in (claim.arm, "plain")}
             planned = min(
-                len({sd for e, v, a, sd in requested if (e, v, a) == (exp_name, variant, arm)})
-                for arm in (claim.arm, "plain")
+                len(_wanted(requested, exp_name, variant, arm)) for arm in (claim.arm, "plain")
             )
             asked = {
-                arm
-                for e, v, arm, _sd in requested
-                if (e, v) == (exp_name, variant) and arm in (claim.arm, "plain")
+                arm for arm in (claim.arm, "plain") if _wanted(requested, exp_name, variant, arm)
             }
             if not by_arm[claim.arm] and claim.arm not in asked:
                 continue  # this arm is not part of the grid asked for
@@ -695,6 +710,94 @@ def _claims_table(rows: list[ClaimRow]) -> list[str]:
     return lines
 
 
+# -- shared plain arms -----------------------------------------------------------------
+
+
+def _wanted(
+    requested: list[tuple[str, str, str, int]], exp_name: str, variant: str, arm: str
+) -> list[int]:
+    """The seeds of ``arm`` in ``variant`` that some invocation asked for: for a shared
+    plain arm, those of the variant whose plain runs it uses."""
+    owner = runs_variant(EXPERIMENTS[exp_name], variant, arm)
+    return sorted({sd for e, v, a, sd in requested if (e, v, a) == (exp_name, owner, arm)})
+
+
+def _groups(runs: list[Run], requested: list[tuple[str, str, str, int]]) -> dict[Group, list[Run]]:
+    """The runs of each (experiment, variant) asked for or run: its own arms, and for the
+    plain arm the runs of the variant it shares plain with (``Variant.plain_from``). A
+    variant's own plain runs made before it shared them are left out (see
+    ``_shared_plain``)."""
+    groups: dict[Group, list[Run]] = {}
+    for exp_name, exp in EXPERIMENTS.items():
+        for var in exp.variants:
+            rs = [
+                r
+                for r in runs
+                if r.experiment == exp_name and r.variant == runs_variant(exp, var.name, r.arm)
+            ]
+            asked = any((e, v) == (exp_name, var.name) for e, v, _a, _s in requested)
+            # Another variant's plain runs alone do not make a section.
+            if asked or any(r.variant == var.name for r in rs):
+                groups[(exp_name, var.name)] = rs
+    return groups
+
+
+#: Columns of a run's CSV that a rerun with the same seed reproduces (not the wall time,
+#: nor the shaping diagnostics, which depend on the variant's pool settings).
+REPLAYED = ("episode", "steps", "env_return", "terminated", "truncated", "success", "score")
+
+
+def _shared_plain(groups: dict[Group, list[Run]], runs: list[Run]) -> list[str]:
+    """Which variants share a plain arm, and whether a variant's own plain runs from
+    before the sharing agree, episode by episode, with the shared runs of the same seed."""
+    lines = []
+    for exp_name, variant in groups:
+        exp = EXPERIMENTS[exp_name]
+        owner = runs_variant(exp, variant, "plain")
+        if owner == variant:
+            continue
+        own = [r for r in runs if (r.experiment, r.variant, r.arm) == (exp_name, variant, "plain")]
+        shared = {
+            r.seed: r
+            for r in runs
+            if (r.experiment, r.variant, r.arm) == (exp_name, owner, "plain")
+        }
+        same = [r.seed for r in own if r.seed in shared and _replays(r, shared[r.seed])]
+        differ = [r.seed for r in own if r.seed in shared and r.seed not in same]
+        text = (
+            f"- {exp.short}, {exp.variant(variant).label}: the plain arm is the runs of "
+            f"*{exp.variant(owner).label}* (the variants differ only in shaping settings, "
+            "which the plain arm does not use)."
+        )
+        if own:
+            text += (
+                f" Earlier plain runs of its own (seeds {_seed_list(sorted(r.seed for r in own))}"
+                f"), kept in the raw data: {len(same)} identical episode by episode to the shared "
+                f"run of the same seed, {len(differ)} different"
+                + (f" (seeds {_seed_list(differ)})" if differ else "")
+                + ", "
+                + f"{len(own) - len(same) - len(differ)} without a shared run to compare."
+            )
+        lines.append(text)
+    if not lines:
+        return []
+    return [
+        "Shared plain arms: the plain arm does not depend on the shaping signs or the "
+        "gate, so it runs once per set of such variants.",
+        "",
+        *lines,
+        "",
+    ]
+
+
+def _replays(a: Run, b: Run) -> bool:
+    """Whether two runs have the same episodes (``REPLAYED`` columns)."""
+    cols = [c for c in REPLAYED if c in a.df.columns and c in b.df.columns]
+    return len(a.df) == len(b.df) and a.df[cols].reset_index(drop=True).equals(
+        b.df[cols].reset_index(drop=True)
+    )
+
+
 # -- status, pilot, cost ---------------------------------------------------------------
 
 
@@ -724,16 +827,18 @@ def _status(
         exp = EXPERIMENTS[exp_name]
         for arm in ARMS:
             done = sorted(r.seed for r in runs if r.arm == arm)
-            want = [sd for e, v, a, sd in requested if (e, v, a) == (exp_name, variant, arm)]
+            want = _wanted(requested, exp_name, variant, arm)
             pending = [sd for sd in want if sd not in done]
             if not done and not pending:
                 continue
+            owner = runs_variant(exp, variant, arm)
             pend = []
             for sd in pending:
-                eps = partial.get((exp_name, variant, arm, sd))
+                eps = partial.get((exp_name, owner, arm, sd))
                 pend.append(f"{sd} ({eps} episodes so far)" if eps else str(sd))
+            shared = f" (the runs of {owner})" if owner != variant else ""
             lines.append(
-                f"| {exp.short} | {exp.variant(variant).label} | {ARMS[arm].label} | "
+                f"| {exp.short} | {exp.variant(variant).label} | {ARMS[arm].label}{shared} | "
                 f"{len(done)}: {_seed_list(done)} | {len(pending)}"
                 + (f": {', '.join(pend)}" if pend else "")
                 + " |"
@@ -767,8 +872,8 @@ def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
     ]
     for (exp_name, variant), runs in groups.items():
         plain = [r for r in runs if r.arm == "plain" and len(r.df) >= 40]
-        if not plain:
-            continue
+        if not plain or any(r.variant != variant for r in plain):
+            continue  # none, or another variant's plain runs (listed under that variant)
         exp = EXPERIMENTS[exp_name]
         first = t_interval([float(r.df["steps"].head(20).mean()) for r in plain])
         last = t_interval([float(r.df["steps"].tail(20).mean()) for r in plain])
@@ -800,7 +905,8 @@ def _cost(groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, i
     total_pending = 0.0
     for (exp_name, variant), runs in groups.items():
         exp = EXPERIMENTS[exp_name]
-        done = {(r.arm, r.seed) for r in runs}
+        # Shared plain runs count once, under the variant that owns them.
+        done = {(r.arm, r.seed) for r in runs if r.variant == variant}
         pending = [
             (a, sd)
             for e, v, a, sd in requested
@@ -869,13 +975,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
         return
     requested = _requested(runs_dir) or [(r.experiment, r.variant, r.arm, r.seed) for r in current]
     requested += [(r.experiment, r.variant, r.arm, r.seed) for r in earlier]
-    groups: dict[Group, list[Run]] = {}
-    for exp_name, exp in EXPERIMENTS.items():
-        for var in exp.variants:
-            rs = [r for r in runs if (r.experiment, r.variant) == (exp_name, var.name)]
-            asked = any((e, v) == (exp_name, var.name) for e, v, _a, _s in requested)
-            if rs or asked:
-                groups[(exp_name, var.name)] = rs
+    groups = _groups(runs, requested)
     profiles = sorted({r.meta["spec"]["profile"] for r in runs})
     if "quick" in profiles:
         lines += [
@@ -898,6 +998,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
     lines += _claims_table(_claim_rows(groups, requested))
     lines += ["## Status of the grid", ""]
     lines += _status(groups, requested, _partials(runs_dir))
+    lines += _shared_plain(groups, runs)
     lines += ["## Pilot: do the plain learners learn within the budget?", ""]
     lines += _pilot(groups)
     for (exp_name, variant), rs in groups.items():

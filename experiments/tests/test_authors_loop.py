@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 tamrm = pytest.importorskip("tamrm")
@@ -64,3 +65,47 @@ def test_the_observation_bug_shows_the_learner_only_the_start(monkeypatch):
             with client.session("t", 1) as session:
                 authors.train_authors(spec, session, lambda _row: None, True)
         assert (len(set(seen)) == 1) == expect_one, variant
+
+
+@pytest.mark.parametrize(
+    ("exp", "variant"), [("maze", "authors-tuned-3"), ("cartpole", "authors-fixed")]
+)
+def test_a_pilot_is_the_plain_run_through_the_server(tmp_path, exp, variant):
+    from tamrm_experiments.pilot import pilot
+
+    spec = make_specs("quick", 1, [exp], ["plain"], variants=[variant])[0]
+    with tamrm.local_server() as server:
+        run_one(spec, server.address, tmp_path)
+    rows = run_paths(tmp_path, spec)[0].read_text().splitlines()[1:]
+    assert [int(r.split(",")[1]) for r in rows] == pilot(exp, variant, 0, profile="quick")
+
+
+def test_the_tuned_maze_learner_sees_the_cell_one_hot(monkeypatch):
+    from tamrm_experiments import authors
+    from tamrm_experiments.pilot import PlainSession
+
+    made, seen = [], []
+
+    class Spy(authors.TutorialDQN):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+        def act(self, s):
+            seen.append(np.asarray(s))
+            return super().act(s)
+
+    monkeypatch.setattr(authors, "TutorialDQN", Spy)
+    for variant, features, hidden in (("authors-tuned-3", 64, 64), ("authors-3", 4, 10)):
+        made.clear()
+        seen.clear()
+        spec = make_specs("quick", 1, ["maze"], ["plain"], variants=[variant])[0]
+        authors.train_authors(spec, PlainSession(), lambda _row: None, True)
+        (dqn,) = made
+        assert dqn.n_features == features
+        assert dqn.q.params()[0].shape == (features, hidden)
+        if variant == "authors-tuned-3":
+            assert all(s.sum() == 1.0 and set(np.unique(s)) == {0.0, 1.0} for s in seen)
+            assert dqn.learn_after == 1_000 and dqn.epsilon > 0.9  # decays from 1
+        else:
+            assert dqn.learn_after == 20_000 and dqn.epsilon == pytest.approx(0.1)

@@ -1,52 +1,12 @@
-import csv
 import json
 from dataclasses import replace
 
+from synthetic import write_run
+
 from tamrm_experiments.configs import ARMS, make_specs
 from tamrm_experiments.report import load_runs, run_metrics, write_report
-from tamrm_experiments.run import CSV_FIELDS, run_paths
+from tamrm_experiments.run import run_paths
 from tamrm_experiments.stats import t_interval
-
-
-def _write_run(out, spec, steps):
-    csv_path, _, meta_path = run_paths(out, spec)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(csv_path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
-        w.writeheader()
-        total = 0
-        for i, n in enumerate(steps, 1):
-            total += n
-            w.writerow(
-                {
-                    "episode": i,
-                    "steps": n,
-                    "env_return": 1.0,
-                    "shaped_return": 1.5,
-                    "knn_sum": 0.1,
-                    "potential_sum": 0.2,
-                    "knn_active_steps": 1,
-                    "terminated": 1,
-                    "truncated": 0,
-                    "success": 1,
-                    "score": 100 / n,
-                    "task_phase": 0,
-                    "pool_version": i,
-                    "total_steps": total,
-                    "wall_time": i * 0.1,
-                }
-            )
-    meta = {
-        "spec": spec.to_dict(),
-        "complete": True,
-        "episodes": len(steps),
-        "total_steps": sum(steps),
-        "censored": False,
-        "wall_time_s": 1.0,
-        "steps_per_s": float(sum(steps)),
-        "versions": {"cpu_count": "2"},
-    }
-    meta_path.write_text(json.dumps(meta))
 
 
 def test_report_tables_from_synthetic_runs(tmp_path):
@@ -57,7 +17,7 @@ def test_report_tables_from_synthetic_runs(tmp_path):
         base = {"plain": 100, "pbrs": 90, "knn": 80, "tamrm": 20}[spec.arm] + spec.seed
         steps = [base] * spec.budget.episodes
         totals.setdefault(spec.arm, []).append(sum(steps))
-        _write_run(runs, spec, steps)
+        write_run(runs, spec, steps)
     loaded = load_runs(runs)
     assert len(loaded) == 12
     assert {run_metrics(r)["total_steps"] for r in loaded if r.arm == "tamrm"} == set(
@@ -83,7 +43,7 @@ def test_report_tables_from_synthetic_runs(tmp_path):
 def test_a_claim_with_seeds_pending_cannot_be_decided(tmp_path):
     runs = tmp_path / "runs"
     for spec in make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"]):
-        _write_run(runs, spec, [50 + spec.seed] * spec.budget.episodes)
+        write_run(runs, spec, [50 + spec.seed] * spec.budget.episodes)
     with open(runs / "invocations.jsonl", "w") as fh:
         cmd = "python -m tamrm_experiments run --quick --experiments maze --variants clean"
         fh.write(json.dumps({"command": cmd + " --seeds 5", "runs_todo": 1}) + "\n")
@@ -98,13 +58,13 @@ def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
     runs = tmp_path / "runs"
     specs = make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"])
     for spec in specs:
-        _write_run(runs, spec, [50] * spec.budget.episodes)
+        write_run(runs, spec, [50] * spec.budget.episodes)
     out = tmp_path / "reproduction.md"
     write_report(runs, out, tmp_path / "plots")
     assert "Mixed budgets" not in out.read_text()
     # One run redone under another budget (e.g. the profile changed mid-grid).
     longer = replace(specs[0], budget=replace(specs[0].budget, episodes=9))
-    _write_run(runs, longer, [50] * 9)
+    write_run(runs, longer, [50] * 9)
     write_report(runs, out, tmp_path / "plots")
     section = out.read_text().split("## Maze: clean")[1]
     assert "Mixed budgets" in section
@@ -113,7 +73,7 @@ def test_report_flags_an_experiment_whose_runs_mix_budgets(tmp_path):
 def test_status_lists_only_runs_some_invocation_asked_for(tmp_path):
     runs = tmp_path / "runs"
     for spec in make_specs("quick", seeds=1, experiments=["maze"], variants=["clean"]):
-        _write_run(runs, spec, [50] * spec.budget.episodes)
+        write_run(runs, spec, [50] * spec.budget.episodes)
     commands = [
         "python -m tamrm_experiments run --quick --experiments maze --variants clean",
         # Extra seeds for one arm only: the other arms' seed 1 is not missing.
@@ -162,7 +122,7 @@ def test_previous_runs_show_as_the_first_reports_variant(tmp_path):
         spec_dict = spec.to_dict()
         for key in ("variant", "fidelity", "variant_settings"):
             spec_dict.pop(key)
-        _write_run(previous, spec, [60 + spec.seed] * spec.budget.episodes)
+        write_run(previous, spec, [60 + spec.seed] * spec.budget.episodes)
         meta_path = run_paths(previous, spec)[2]
         meta = json.loads(meta_path.read_text())
         meta["spec"] = spec_dict
@@ -176,3 +136,11 @@ def test_previous_runs_show_as_the_first_reports_variant(tmp_path):
     # Nothing of it is pending.
     status = text.split("## Status of the grid")[1].split("## Pilot")[0]
     assert all(line.endswith("| 0 |") for line in status.splitlines() if "first report" in line)
+
+
+def test_labels_fit_in_a_markdown_table_cell():
+    from tamrm_experiments.configs import EXPERIMENTS
+
+    labels = [v.label for e in EXPERIMENTS.values() for v in e.variants]
+    labels += [a.label for a in ARMS.values()] + [e.title for e in EXPERIMENTS.values()]
+    assert not [label for label in labels if "|" in label]

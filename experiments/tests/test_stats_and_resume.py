@@ -77,7 +77,9 @@ def test_complete_run_is_skipped_and_partial_is_not(tmp_path):
 def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
     from tamrm_experiments.configs import EXPERIMENTS
 
-    per_seed = 4 * sum(v.runnable for e in EXPERIMENTS.values() for v in e.variants)
+    variants = [v for e in EXPERIMENTS.values() for v in e.variants if v.runnable]
+    # Four arms per variant, less the plain arms shared with another variant.
+    per_seed = 4 * len(variants) - sum(v.plain_from is not None for v in variants)
     specs = make_specs("full", seeds=2)
     assert len(specs) == 2 * per_seed
     assert {s.seed for s in specs[:per_seed]} == {0}

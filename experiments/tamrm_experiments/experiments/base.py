@@ -50,6 +50,12 @@ class Variant:
             for the unwrapped mountain car).
         runnable: False for a variant that only labels earlier runs (``clean-v1``): the
             grid never schedules it.
+        plain_from: The variant whose plain runs this one uses instead of its own, when
+            the two differ only in shaping settings (signs, ``pbrs_beta``,
+            ``gate_potential``, the kNN pool), which the plain arm (alpha = beta = 0) never
+            reads: the
+            grid runs plain once for both, and the report compares both variants' arms
+            with the same plain runs (``configs.plain_key`` checks the declaration).
     """
 
     name: str
@@ -58,6 +64,7 @@ class Variant:
     settings: dict[str, Any] = field(default_factory=dict)
     budgets: dict[str, Budget] = field(default_factory=dict)
     runnable: bool = True
+    plain_from: str | None = None
 
 
 @dataclass(frozen=True)
@@ -248,7 +255,14 @@ def claim_word(better: bool | None) -> str:
 #: the first report ran) and gated to the kNN window (SPEC v1.1 ``gate_potential``).
 CLEAN_VARIANTS: tuple[Variant, ...] = (
     Variant("clean", "clean", "clean (SB3, gate_potential off)", {"gate_potential": False}),
-    Variant("clean-gated", "clean", "clean (SB3, gate_potential on)", {"gate_potential": True}),
+    # Gating changes only beta F, which is 0 in the plain arm: plain runs once, as clean's.
+    Variant(
+        "clean-gated",
+        "clean",
+        "clean (SB3, gate_potential on)",
+        {"gate_potential": True},
+        plain_from="clean",
+    ),
     # The first report's runs (docs/reproduction/raw-runs.tar.gz, runs-v1/): SB3 learners,
     # the potential ungated, the reduced ``full`` budgets, the maze's DQN on the (x, y)
     # cell. Read by ``report --previous``; never run again.

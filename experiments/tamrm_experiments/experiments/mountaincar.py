@@ -58,7 +58,8 @@ def _authors(sign: float) -> dict:
 #: pool of 20 is full and 10 <= t < L_min - 1 (top 20); then ``if done: reward = 10``;
 #: score = the return (-steps). ``authors-neg`` is their code's sign, ``authors-pos`` the
 #: paper's (alpha = beta = +1). The episode cap is only a safety net (their first episodes
-#: took ~30 000 random steps).
+#: took ~30 000 random steps). The sign enters only through alpha, beta and ``pbrs_beta``,
+#: all 0 in the plain arm: ``authors-pos`` uses the plain runs of ``authors-neg``.
 AUTHORS_BUDGETS = {
     "paper": Budget(episodes=500, max_episode_steps=100_000, max_total_steps=3_000_000),
     "full": Budget(episodes=500, max_episode_steps=100_000, max_total_steps=3_000_000),
@@ -78,6 +79,7 @@ AUTHORS_VARIANTS = (
         "authors (their DQN, the paper's signs: alpha = beta = +1)",
         _authors(1.0),
         AUTHORS_BUDGETS,
+        plain_from="authors-neg",
     ),
 )
 
