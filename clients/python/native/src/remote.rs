@@ -539,8 +539,7 @@ impl RemoteStream {
         let waited = self.rt.block_on(async {
             let end = tokio::time::Instant::now() + d;
             while tokio::time::Instant::now() < end {
-                tokio::time::sleep_until(end.min(tokio::time::Instant::now() + SIGNAL_CHECK))
-                    .await;
+                tokio::time::sleep_until(end.min(tokio::time::Instant::now() + SIGNAL_CHECK)).await;
                 Python::attach(|py| py.check_signals())?;
             }
             Ok::<(), PyErr>(())
