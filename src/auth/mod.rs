@@ -67,6 +67,10 @@ pub const SHAPING_ROLES: &[(&str, Role)] = &[
     ("ResetPool", Role::Admin),
 ];
 
+/// What a request without credentials is told, wherever it is refused.
+pub const MISSING_CREDENTIALS: &str =
+    "missing credentials: this server needs the metadata `authorization: Bearer <key>`";
+
 /// The gRPC health service, which needs no credential.
 const HEALTH_SERVICE: &str = "grpc.health.v1.Health";
 
@@ -358,12 +362,7 @@ impl Access {
 
 /// The key of an `authorization: Bearer <key>` value.
 fn bearer(value: Option<&[u8]>) -> Result<&[u8], Error> {
-    let value = value.ok_or_else(|| {
-        Error::Unauthenticated(
-            "missing credentials: this server needs the metadata `authorization: Bearer <key>`"
-                .into(),
-        )
-    })?;
+    let value = value.ok_or_else(|| Error::Unauthenticated(MISSING_CREDENTIALS.into()))?;
     let scheme = b"bearer ";
     let key = match value.get(..scheme.len()) {
         Some(p) if p.eq_ignore_ascii_case(scheme) => &value[scheme.len()..],

@@ -64,8 +64,7 @@ impl ShapingService {
         match (request.extensions().get::<Caller>(), &self.open_caller) {
             (Some(c), _) | (None, Some(c)) => Ok(c.clone()),
             (None, None) => Err(Error::Unauthenticated(
-                "missing credentials: this server needs the metadata `authorization: Bearer <key>`"
-                    .into(),
+                crate::auth::MISSING_CREDENTIALS.into(),
             )),
         }
     }
