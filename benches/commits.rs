@@ -109,6 +109,7 @@ async fn new_path(streams: usize, per_stream: u32) -> Round {
                 let ops = vec![PoolOp::Offer {
                     actions: episode(i),
                     score: f64::from(i),
+                    end: None,
                 }];
                 let t = Instant::now();
                 let c = store

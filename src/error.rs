@@ -42,9 +42,26 @@ pub enum Error {
     /// The server is shutting down; reconnect to another (or the restarted) server.
     #[error("server is shutting down")]
     ShuttingDown,
+    /// The store cannot be reached now (a shared store, e.g. Redis, is down); the change
+    /// was not applied and the call may succeed later.
+    #[error("{0}")]
+    StoreUnavailable(String),
     /// Persisting a change failed; the change was not applied.
     #[error("storage error, change not applied: {0}")]
-    Storage(#[from] StoreError),
+    Storage(StoreError),
+}
+
+impl From<StoreError> for Error {
+    fn from(e: StoreError) -> Error {
+        match e {
+            StoreError::Unavailable { .. } => {
+                Error::StoreUnavailable(format!("change not applied: {e}"))
+            }
+            // Another server deleted the task.
+            StoreError::Gone { task } => Error::not_found(crate::registry::split_key(&task).1),
+            e => Error::Storage(e),
+        }
+    }
 }
 
 impl Error {

@@ -106,6 +106,14 @@ pub struct ServeArgs {
     /// Write the bound address (`host:port`) to this file once listening.
     #[arg(long, env = "TAMRM_PORT_FILE", value_name = "FILE")]
     pub port_file: Option<PathBuf>,
+    /// Keep tasks and pools in Redis, shared with every server given the same URL:
+    /// `redis://[:PASSWORD@]HOST:PORT[/DB]` (see docs/scaling.md). Excludes --data-dir.
+    #[arg(long, env = "TAMRM_STORE", value_name = "URL")]
+    pub store: Option<String>,
+    /// With --store: how often every task's pool version is polled, in milliseconds, as
+    /// a backstop for lost notifications (the staleness bound) [default: 1000].
+    #[arg(long, env = "TAMRM_STORE_POLL_MS", value_name = "MS")]
+    pub store_poll_ms: Option<u64>,
     /// Server limits (each also `TAMRM_<NAME>` and `[limits] <name>` in the file).
     #[command(flatten)]
     pub limits: LimitsLayer,
@@ -138,6 +146,10 @@ pub struct FileSettings {
     pub data_dir: Option<PathBuf>,
     /// Port file.
     pub port_file: Option<PathBuf>,
+    /// Shared store URL (`redis://...`).
+    pub store: Option<String>,
+    /// Version poll interval of the shared store, milliseconds.
+    pub store_poll_ms: Option<u64>,
     /// Shutdown grace period, seconds.
     pub shutdown_grace_secs: Option<u64>,
     /// Limits (any subset).
@@ -160,6 +172,10 @@ pub struct Settings {
     pub data_dir: Option<PathBuf>,
     /// Where to write the bound address.
     pub port_file: Option<PathBuf>,
+    /// A store shared with other servers (`redis://...`), or `None`.
+    pub store: Option<String>,
+    /// Version poll interval of the shared store, milliseconds.
+    pub store_poll_ms: u64,
     /// Server limits.
     pub limits: Limits,
     /// Shutdown grace period, seconds.
@@ -178,6 +194,8 @@ impl Default for Settings {
             listen: DEFAULT_LISTEN.parse().expect("valid default address"),
             data_dir: None,
             port_file: None,
+            store: None,
+            store_poll_ms: 1000,
             limits: Limits::default(),
             shutdown_grace_secs: 30,
             api_keys: None,
@@ -202,6 +220,22 @@ impl Settings {
         }
         s.apply_args(args);
         s.tls.check().map_err(SettingsError)?;
+        if let Some(url) = &s.store {
+            if s.data_dir.is_some() {
+                return Err(SettingsError(
+                    "store and data_dir exclude each other: tasks live either in Redis (--store) or in a data dir (--data-dir)".into(),
+                ));
+            }
+            if !(url.starts_with("redis://") || url.starts_with("rediss://")) {
+                return Err(SettingsError(format!(
+                    "store: expected a redis:// or rediss:// URL, got {:?}",
+                    url.split('@').next_back().unwrap_or(url)
+                )));
+            }
+        }
+        if s.store_poll_ms == 0 {
+            return Err(SettingsError("store_poll_ms must be at least 1".into()));
+        }
         if s.limits.max_message_bytes < 1024 {
             return Err(SettingsError(format!(
                 "max_message_bytes must be at least 1024, got {}",
@@ -219,6 +253,10 @@ impl Settings {
         if f.port_file.is_some() {
             self.port_file.clone_from(&f.port_file);
         }
+        if f.store.is_some() {
+            self.store.clone_from(&f.store);
+        }
+        set(&mut self.store_poll_ms, f.store_poll_ms);
         set(&mut self.shutdown_grace_secs, f.shutdown_grace_secs);
         if f.api_keys.is_some() {
             self.api_keys.clone_from(&f.api_keys);
@@ -240,6 +278,10 @@ impl Settings {
         if a.port_file.is_some() {
             self.port_file.clone_from(&a.port_file);
         }
+        if a.store.is_some() {
+            self.store.clone_from(&a.store);
+        }
+        set(&mut self.store_poll_ms, a.store_poll_ms);
         set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
         if a.api_keys.is_some() {
             self.api_keys.clone_from(&a.api_keys);

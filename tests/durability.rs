@@ -666,6 +666,7 @@ async fn a_corrupt_commit_log_is_refused_naming_it() {
             let ops = vec![PoolOp::Offer {
                 actions: ActionSeq::Discrete(vec![1, 2]),
                 score,
+                end: None,
             }];
             pool = s
                 .commit("t", pool, ops, Counters::default())

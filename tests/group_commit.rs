@@ -27,6 +27,7 @@ fn offer(actions: &[u32], score: f64) -> PoolOp {
     PoolOp::Offer {
         actions: ActionSeq::Discrete(actions.to_vec()),
         score,
+        end: None,
     }
 }
 

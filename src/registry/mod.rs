@@ -114,7 +114,7 @@ impl Registry {
             .map_err(|e| Error::invalid(format!("config.{}", e.field), e.message))?;
         let key = task_key(tenant, id);
         let _admin = self.admin.lock().await;
-        if let Some(existing) = self.tasks.get(&key) {
+        if let Some(existing) = self.tasks.get(&key).filter(|t| t.check_live().is_ok()) {
             return if existing.config().same_as(&config) {
                 Ok(existing.clone())
             } else {
@@ -143,7 +143,16 @@ impl Registry {
                 )));
             }
         }
-        self.store.create_task(&key, &config).await?;
+        if let Some(stored) = self.store.create_task(&key, &config).await? {
+            // A store shared with other servers: another server created this task.
+            if !stored.same_as(&config) {
+                return Err(Error::AlreadyExists {
+                    id: id.to_string(),
+                    detail: stored.diff(&config, input).join("; "),
+                });
+            }
+            return self.adopt(tenant, id).await;
+        }
         let handle = Arc::new(TaskHandle::new(
             key.clone(),
             config,
@@ -155,15 +164,89 @@ impl Registry {
         Ok(handle)
     }
 
-    /// Looks `tenant`'s task `id` up.
+    /// Looks `tenant`'s task `id` up among the tasks this server holds.
     pub fn get(&self, tenant: &str, id: &str) -> Result<Arc<TaskHandle>, Error> {
         self.tasks
             .get(&task_key(tenant, id))
             .map(|t| t.clone())
+            .filter(|t| t.check_live().is_ok())
             .ok_or_else(|| Error::TaskNotFound {
                 id: id.to_string(),
                 hint: self.closest(tenant, id),
             })
+    }
+
+    /// Looks `tenant`'s task `id` up; with a store shared with other servers, a task
+    /// this server does not hold (created elsewhere) is loaded from the store (SPEC §10:
+    /// usable on every server once its creation is acknowledged).
+    pub async fn lookup(&self, tenant: &str, id: &str) -> Result<Arc<TaskHandle>, Error> {
+        match self.get(tenant, id) {
+            Err(Error::TaskNotFound { .. }) if self.store.is_shared() => {
+                self.adopt(tenant, id).await
+            }
+            found => found,
+        }
+    }
+
+    /// Loads `tenant`'s task `id` from a shared store into this server, replacing a
+    /// handle of a deleted incarnation.
+    async fn adopt(&self, tenant: &str, id: &str) -> Result<Arc<TaskHandle>, Error> {
+        let key = task_key(tenant, id);
+        let Some(t) = self.store.load_task(&key).await? else {
+            if let Some((_, stale)) = self.tasks.remove(&key) {
+                stale.mark_deleted();
+            }
+            return Err(Error::TaskNotFound {
+                id: id.to_string(),
+                hint: self.closest(tenant, id),
+            });
+        };
+        let handle = Arc::new(TaskHandle::new(
+            key.clone(),
+            t.config,
+            t.pool,
+            t.counters,
+            self.store.clone(),
+        ));
+        let entry = self.tasks.entry(key).and_modify(|held| {
+            if held.check_live().is_err() {
+                *held = handle.clone();
+            }
+        });
+        Ok(entry.or_insert(handle).clone())
+    }
+
+    /// With a store shared with other servers: loads the tasks other servers created and
+    /// forgets those they deleted, so that a listing is the store's.
+    async fn sync_with_store(&self) -> Result<(), Error> {
+        let Some(keys) = self.store.task_ids().await? else {
+            return Ok(());
+        };
+        let known: std::collections::HashSet<&str> = keys.iter().map(String::as_str).collect();
+        self.tasks.retain(|key, t| {
+            let keep = known.contains(key.as_str());
+            if !keep {
+                t.mark_deleted();
+            }
+            keep
+        });
+        for key in &keys {
+            if !self.tasks.contains_key(key) {
+                let (tenant, id) = split_key(key);
+                match self.adopt(tenant, id).await {
+                    Ok(_) | Err(Error::TaskNotFound { .. }) => {}
+                    Err(e) => return Err(e),
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Forgets a task another server deleted: its open streams end with NOT_FOUND.
+    fn forget(&self, key: &str) {
+        if let Some((_, t)) = self.tasks.remove(key) {
+            t.mark_deleted();
+        }
     }
 
     /// `tenant`'s existing id closest to `id` by edit distance, if it is a typo away (at
@@ -184,8 +267,14 @@ impl Registry {
             .map(|(_, k)| k)
     }
 
-    /// `tenant`'s tasks, ordered by id.
-    pub fn list(&self, tenant: &str) -> Vec<Arc<TaskHandle>> {
+    /// `tenant`'s tasks, ordered by id (with a shared store: the store's tasks).
+    pub async fn list(&self, tenant: &str) -> Result<Vec<Arc<TaskHandle>>, Error> {
+        self.sync_with_store().await?;
+        Ok(self.held(tenant))
+    }
+
+    /// `tenant`'s tasks this server holds, ordered by id.
+    pub fn held(&self, tenant: &str) -> Vec<Arc<TaskHandle>> {
         let mut v: Vec<_> = self
             .tasks
             .iter()
@@ -225,9 +314,16 @@ impl Registry {
     /// batch.
     pub async fn delete(&self, tenant: &str, id: &str) -> Result<(), Error> {
         let _admin = self.admin.lock().await;
-        let handle = self.get(tenant, id)?;
+        let handle = self.lookup(tenant, id).await?;
         let _writer = handle.lock_for_delete().await;
-        self.store.delete_task(handle.key()).await?;
+        match self.store.delete_task(handle.key()).await {
+            Ok(()) => {}
+            Err(StoreError::Gone { .. }) => {
+                self.forget(handle.key());
+                return Err(Error::not_found(id));
+            }
+            Err(e) => return Err(e.into()),
+        }
         handle.mark_deleted();
         self.tasks.remove(handle.key());
         Ok(())
@@ -262,6 +358,10 @@ impl Registry {
                 let Some(registry) = registry.upgrade() else {
                     return;
                 };
+                if change.deleted {
+                    registry.forget(&change.task);
+                    continue;
+                }
                 let Some(task) = registry.tasks.get(&change.task).map(|t| t.clone()) else {
                     continue;
                 };

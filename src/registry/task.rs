@@ -235,6 +235,34 @@ impl TaskHandle {
             .is_some_and(|&n| n > number)
     }
 
+    /// Learns from a store shared with other servers which episode ends of `client` it
+    /// committed (a stream that broke on another server is resumed here; SPEC §9).
+    pub async fn learn_ended(&self, client: &str) -> Result<(), Error> {
+        if self.store.is_shared() {
+            let ends = self.store.ended_episodes(&self.key, client).await;
+            let ends = self.gone_is_not_found(ends)?;
+            // Stored as counts: episode `n - 1` is the last one ended.
+            let ends: Vec<(u32, u64)> = ends
+                .into_iter()
+                .filter(|&(_, n)| n > 0)
+                .map(|(env, n)| (env, n - 1))
+                .collect();
+            self.mark_ended(client, &ends);
+        }
+        Ok(())
+    }
+
+    /// A task the store no longer has is deleted here too (another server deleted it).
+    fn gone_is_not_found<T>(&self, r: Result<T, StoreError>) -> Result<T, Error> {
+        r.map_err(|e| match e {
+            StoreError::Gone { .. } => {
+                self.mark_deleted();
+                Error::not_found(self.id())
+            }
+            e => e.into(),
+        })
+    }
+
     fn mark_ended(&self, client: &str, ends: &[(u32, u64)]) {
         let mut ended = self.ended.lock();
         let ended = &mut *ended;
@@ -281,15 +309,13 @@ impl TaskHandle {
 
     async fn commit_locked(&self, writer: &Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
         if ops.is_empty() {
-            return Ok(Committed {
-                pool: writer.base.clone(),
-                changed: Vec::new(),
-            });
+            return Ok(Committed::new(writer.base.clone(), Vec::new()));
         }
         let committed = self
             .store
             .commit(&self.key, writer.base.clone(), ops, self.counters())
-            .await?;
+            .await;
+        let committed = self.gone_is_not_found(committed)?;
         self.publish(committed.pool.clone());
         Ok(committed)
     }
@@ -303,22 +329,22 @@ impl TaskHandle {
     pub async fn offer(&self, actions: ActionSeq, score: f64) -> Result<(bool, u64), Error> {
         let writer = self.writer().await?;
         let c = self
-            .commit(writer, vec![PoolOp::Offer { actions, score }])
+            .commit(
+                writer,
+                vec![PoolOp::Offer {
+                    actions,
+                    score,
+                    end: None,
+                }],
+            )
             .await?;
-        Ok((
-            c.changed.first().copied().unwrap_or(false),
-            c.pool.version(),
-        ))
+        Ok((c.changed.first().copied().unwrap_or(false), c.version))
     }
 
     /// Empties the pool (bumping its version). Returns the version after.
     pub async fn reset_pool(&self) -> Result<u64, Error> {
         let writer = self.writer().await?;
-        Ok(self
-            .commit(writer, vec![PoolOp::Reset])
-            .await?
-            .pool
-            .version())
+        Ok(self.commit(writer, vec![PoolOp::Reset]).await?.version)
     }
 
     /// Persists the counters (at shutdown).

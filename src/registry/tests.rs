@@ -84,7 +84,7 @@ async fn limits_are_resource_exhausted_and_change_nothing() {
         r.create(DEFAULT_TENANT, "b", &discrete(2, 5), None).await,
         Err(Error::ResourceExhausted(m)) if m.contains("max_tasks")
     ));
-    assert_eq!(r.list(DEFAULT_TENANT).len(), 1);
+    assert_eq!(r.list(DEFAULT_TENANT).await.unwrap().len(), 1);
 }
 
 #[tokio::test]
@@ -104,6 +104,8 @@ async fn offers_resets_and_deletion() {
         .unwrap();
     let ids: Vec<_> = r
         .list(DEFAULT_TENANT)
+        .await
+        .unwrap()
         .iter()
         .map(|t| t.id().to_string())
         .collect();
@@ -182,6 +184,7 @@ async fn a_shared_store_change_refreshes_the_snapshot_and_never_goes_back() {
     let offer = |a: u32, s: f64| PoolOp::Offer {
         actions: acts(&[a, a]),
         score: s,
+        end: None,
     };
     let (remote, _) = apply_ops(&t.snapshot(), vec![offer(0, 1.0), offer(1, 2.0)]);
     store.announce("t", remote.clone());
@@ -260,7 +263,7 @@ async fn tenants_have_their_own_tasks_and_never_see_the_others() {
         .unwrap();
 
     let ids = |t: &str| {
-        r.list(t)
+        r.held(t)
             .iter()
             .map(|h| h.id().to_string())
             .collect::<Vec<_>>()
@@ -296,7 +299,7 @@ async fn tenants_have_their_own_tasks_and_never_see_the_others() {
         again.get("team-a", "cartpole").unwrap().stats().pool_size,
         1
     );
-    assert_eq!(again.list(DEFAULT_TENANT).len(), 1);
+    assert_eq!(again.list(DEFAULT_TENANT).await.unwrap().len(), 1);
     assert!(again.get("team-b", "cartpole").is_err());
 }
 

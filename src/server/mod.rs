@@ -20,7 +20,7 @@ use crate::registry::Registry;
 use crate::service::status::remap_response_headers;
 use crate::service::ShapingService;
 use crate::settings::Settings;
-use crate::store::{DiskStore, MemoryStore, Store};
+use crate::store::{DiskStore, MemoryStore, RedisOptions, RedisStore, Store};
 use crate::telemetry::{self, GrpcMetricsLayer, Metrics};
 
 /// Why the server could not start.
@@ -97,9 +97,14 @@ impl RunningServer {
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     // Before anything else: a bad certificate must not leave a half-started server.
     let tls = tls::server_config(&settings.tls)?;
-    let store: Arc<dyn Store> = match &settings.data_dir {
-        Some(dir) => Arc::new(DiskStore::open(dir)?),
-        None => Arc::new(MemoryStore::new()),
+    let store: Arc<dyn Store> = match (&settings.store, &settings.data_dir) {
+        (Some(url), _) => {
+            let mut options = RedisOptions::new(url.as_str());
+            options.poll_interval = Duration::from_millis(settings.store_poll_ms);
+            Arc::new(RedisStore::open(&options).await?)
+        }
+        (None, Some(dir)) => Arc::new(DiskStore::open(dir)?),
+        (None, None) => Arc::new(MemoryStore::new()),
     };
     tracing::info!("{}", store.describe());
     let metrics = settings.metrics_listen.map(|_| Arc::new(Metrics::new()));

@@ -70,10 +70,10 @@ impl ShapingService {
     }
 
     /// The caller's task `id`.
-    fn task<T>(&self, request: &Request<T>, id: &str) -> Result<Arc<TaskHandle>, Error> {
+    async fn task<T>(&self, request: &Request<T>, id: &str) -> Result<Arc<TaskHandle>, Error> {
         let caller = self.caller(request)?;
         validate_task_id("task_id", id)?;
-        self.registry.get(caller.tenant(), id)
+        self.registry.lookup(caller.tenant(), id).await
     }
 
     /// An answer larger than `max_message_bytes` could not be sent; say so clearly
@@ -111,7 +111,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::GetTaskRequest>,
     ) -> Result<Response<proto::Task>, Status> {
-        let task = self.task(&request, &request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id).await?;
         Ok(Response::new(task_proto(&task)))
     }
 
@@ -123,6 +123,7 @@ impl Shaping for ShapingService {
         let tasks = self
             .registry
             .list(caller.tenant())
+            .await?
             .iter()
             .map(|t| task_proto(t))
             .collect();
@@ -147,7 +148,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::ResetPoolRequest>,
     ) -> Result<Response<proto::Task>, Status> {
-        let task = self.task(&request, &request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id).await?;
         let version = task.reset_pool().await?;
         tracing::info!(tenant = task.tenant(), task = %task.id(), pool_version = version, "pool reset");
         Ok(Response::new(task_proto(&task)))
@@ -157,7 +158,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::GetPoolRequest>,
     ) -> Result<Response<proto::Pool>, Status> {
-        let task = self.task(&request, &request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id).await?;
         let pool = task.pool_snapshot()?;
         let msg = pool_proto(task.id(), &pool);
         self.fits("pool", &msg)?;
@@ -168,7 +169,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<proto::AddTrajectoryRequest>,
     ) -> Result<Response<proto::AddTrajectoryResponse>, Status> {
-        let task = self.task(&request, &request.get_ref().task_id)?;
+        let task = self.task(&request, &request.get_ref().task_id).await?;
         let req = request.into_inner();
         let (actions, score) = trajectory_input(task.config(), req.trajectory)?;
         let (inserted, pool_version) = task.offer(actions, score).await?;

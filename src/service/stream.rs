@@ -85,7 +85,7 @@ async fn serve(
                 resume: &resume,
                 client_id: &o.client_id,
             };
-            match StreamSession::open(&registry, &req) {
+            match StreamSession::open(&registry, &req).await {
                 Ok(s) => s,
                 Err(e) => return e.into(),
             }

@@ -24,7 +24,7 @@ use crate::core::{ActionCount, Episode, KnnScratch, Pool, StepInput, StepOutput}
 use crate::error::Error;
 use crate::limits::Limits;
 use crate::registry::{Registry, StreamGuard, TaskHandle, Writer, DEFAULT_TENANT};
-use crate::store::PoolOp;
+use crate::store::{EndMark, PoolOp};
 
 /// Entries × pool capacity above which shaping a batch counts as long CPU work (about a
 /// millisecond), which a multi-threaded async runtime should not run on a worker thread.
@@ -143,7 +143,7 @@ enum Stop {
 
 impl StreamSession {
     /// Opens a session on `req.task_id` (SPEC §7: `Open`).
-    pub fn open(registry: &Registry, req: &OpenRequest<'_>) -> Result<StreamSession, Error> {
+    pub async fn open(registry: &Registry, req: &OpenRequest<'_>) -> Result<StreamSession, Error> {
         validate_task_id("open.task_id", req.task_id)?;
         if req.num_envs == 0 {
             return Err(Error::invalid("open.num_envs", "must be >= 1"));
@@ -155,7 +155,7 @@ impl StreamSession {
                 req.num_envs
             )));
         }
-        let task = registry.get(req.tenant, req.task_id)?;
+        let task = registry.lookup(req.tenant, req.task_id).await?;
         let config = *task.config();
         let mut episodes: Vec<Episode> = (0..req.num_envs)
             .map(|_| Episode::new(config.action_space))
@@ -196,6 +196,11 @@ impl StreamSession {
             episodes[r.env_id as usize] =
                 Episode::resume(actions, r.reward_sum, config.max_trajectory_len);
             episode_no[r.env_id as usize] = r.episode;
+        }
+        if !req.client_id.is_empty() && !req.resume.is_empty() {
+            // A stream that broke on another server: what that server committed for this
+            // client must not be committed again (SPEC §9).
+            task.learn_ended(req.client_id).await?;
         }
         let guard = task.open_stream()?;
         Ok(StreamSession {
@@ -285,6 +290,11 @@ impl StreamSession {
             ops.push(PoolOp::Offer {
                 actions: end.actions,
                 score: end.score,
+                end: self.client_id.as_ref().map(|client| EndMark {
+                    client: client.clone(),
+                    env: env as u32,
+                    episode: number,
+                }),
             });
         }
         self.task.count_steps(entries.len());

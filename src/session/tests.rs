@@ -26,7 +26,7 @@ async fn task(r: &Registry, id: &str, capacity: u32) -> Arc<TaskHandle> {
     .unwrap()
 }
 
-fn open(r: &Registry, id: &str, num_envs: u32) -> Result<StreamSession, Error> {
+async fn open(r: &Registry, id: &str, num_envs: u32) -> Result<StreamSession, Error> {
     StreamSession::open(
         r,
         &OpenRequest {
@@ -36,6 +36,7 @@ fn open(r: &Registry, id: &str, num_envs: u32) -> Result<StreamSession, Error> {
             ..Default::default()
         },
     )
+    .await
 }
 
 /// A memory-backed registry with task "t" (capacity `capacity`) and a session of
@@ -43,7 +44,7 @@ fn open(r: &Registry, id: &str, num_envs: u32) -> Result<StreamSession, Error> {
 async fn setup(capacity: u32, num_envs: u32) -> (Registry, Arc<TaskHandle>, StreamSession) {
     let r = registry_with(Arc::new(MemoryStore::new()), Limits::default()).await;
     let t = task(&r, "t", capacity).await;
-    let s = open(&r, "t", num_envs).unwrap();
+    let s = open(&r, "t", num_envs).await.unwrap();
     (r, t, s)
 }
 
@@ -76,17 +77,23 @@ async fn open_checks_its_request() {
     )
     .await;
     task(&r, "t", 2).await;
-    assert_eq!(field(open(&r, "t", 0).err().unwrap()), "open.num_envs");
-    assert_eq!(field(open(&r, "a b", 1).err().unwrap()), "open.task_id");
-    assert_eq!(field(open(&r, "", 1).err().unwrap()), "open.task_id");
+    assert_eq!(
+        field(open(&r, "t", 0).await.err().unwrap()),
+        "open.num_envs"
+    );
+    assert_eq!(
+        field(open(&r, "a b", 1).await.err().unwrap()),
+        "open.task_id"
+    );
+    assert_eq!(field(open(&r, "", 1).await.err().unwrap()), "open.task_id");
     assert!(
-        matches!(open(&r, "t", 5), Err(Error::ResourceExhausted(m)) if m.contains("max_envs_per_stream"))
+        matches!(open(&r, "t", 5).await, Err(Error::ResourceExhausted(m)) if m.contains("max_envs_per_stream"))
     );
     assert!(matches!(
-        open(&r, "nope", 1),
+        open(&r, "nope", 1).await,
         Err(Error::TaskNotFound { .. })
     ));
-    let s = open(&r, "t", 4).unwrap();
+    let s = open(&r, "t", 4).await.unwrap();
     assert_eq!(s.num_envs(), 4);
     assert_eq!(s.task().stats().open_streams, 1);
     drop(s);
@@ -196,8 +203,8 @@ async fn abandoned_episodes_restart_without_touching_the_pool() {
 async fn another_sessions_commit_is_seen_from_the_next_entry() {
     let r = registry_with(Arc::new(MemoryStore::new()), Limits::default()).await;
     task(&r, "t", 4).await;
-    let mut a = open(&r, "t", 1).unwrap();
-    let mut b = open(&r, "t", 1).unwrap();
+    let mut a = open(&r, "t", 1).await.unwrap();
+    let mut b = open(&r, "t", 1).await.unwrap();
     let step = Batch {
         actions: &[1],
         rewards: &[0.0],
@@ -222,7 +229,7 @@ async fn a_store_failure_fails_the_batch_and_publishes_nothing() {
     let store = TestStore::new(false);
     let r = registry_with(store.clone(), Limits::default()).await;
     let t = task(&r, "t", 4).await;
-    let mut s = open(&r, "t", 1).unwrap();
+    let mut s = open(&r, "t", 1).await.unwrap();
     store.fail.store(true, Ordering::SeqCst);
     let end = Batch {
         actions: &[1],
@@ -239,7 +246,7 @@ async fn a_store_failure_fails_the_batch_and_publishes_nothing() {
 async fn a_deleted_task_ends_its_sessions_with_not_found() {
     let r = registry_with(Arc::new(MemoryStore::new()), Limits::default()).await;
     task(&r, "t", 4).await;
-    let mut s = open(&r, "t", 1).unwrap();
+    let mut s = open(&r, "t", 1).await.unwrap();
     r.delete(DEFAULT_TENANT, "t").await.unwrap();
     let b = Batch {
         actions: &[0],
@@ -267,7 +274,7 @@ async fn gated_potential_counts_only_where_knn_is_active() {
     )
     .await
     .unwrap();
-    let mut s = open(&r, "g", 1).unwrap();
+    let mut s = open(&r, "g", 1).await.unwrap();
     let b = |done: bool| Batch {
         actions: &[0],
         rewards: &[0.0],

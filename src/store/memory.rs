@@ -44,9 +44,13 @@ impl Store for MemoryStore {
     async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
         Ok(Vec::new())
     }
-    async fn create_task(&self, id: &str, _: &TaskConfig) -> Result<(), StoreError> {
+    async fn create_task(
+        &self,
+        id: &str,
+        _: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError> {
         self.versions.lock().insert(id.to_string(), 0);
-        Ok(())
+        Ok(None)
     }
     async fn delete_task(&self, id: &str) -> Result<(), StoreError> {
         self.versions.lock().remove(id);
@@ -63,10 +67,7 @@ impl Store for MemoryStore {
         check_version(id, versions.get(id).copied(), &base)?;
         let (pool, changed) = apply_ops(&base, ops);
         versions.insert(id.to_string(), pool.version());
-        Ok(Committed {
-            pool: Arc::new(pool),
-            changed,
-        })
+        Ok(Committed::new(Arc::new(pool), changed))
     }
     async fn save_counters(&self, _: &str, _: Arc<Pool>, _: Counters) -> Result<(), StoreError> {
         Ok(())

@@ -14,9 +14,12 @@
 //!
 //! - [`MemoryStore`]: nothing is persisted; state is lost at exit.
 //! - [`DiskStore`]: one directory per task under a data dir; see `docs/storage.md`.
+//! - [`RedisStore`]: tasks and pools in Redis, shared by any number of servers; see
+//!   `docs/scaling.md`.
 
 mod disk;
 mod memory;
+mod redis;
 #[cfg(test)]
 pub(crate) mod testing;
 
@@ -29,6 +32,7 @@ use crate::core::{ActionSeq, Pool, TaskConfig};
 
 pub use disk::{DiskStore, FORMAT_VERSION};
 pub use memory::MemoryStore;
+pub use redis::{RedisOptions, RedisStore};
 
 /// Per-task counters kept alongside the pool (persisted with every pool change and at
 /// graceful shutdown; a crash may lose the increments since the last write).
@@ -63,9 +67,24 @@ pub enum PoolOp {
         actions: ActionSeq,
         /// The episode score (finite).
         score: f64,
+        /// For an episode end of a client that named itself (SPEC §9), which one: a store
+        /// shared by several servers skips an end it already committed. `None` for
+        /// seeded trajectories and anonymous clients.
+        end: Option<EndMark>,
     },
     /// Remove every trajectory.
     Reset,
+}
+
+/// Names an episode end for the no-double-commit rule of SPEC §9: (client, env, episode).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EndMark {
+    /// The client's id (non-empty).
+    pub client: Arc<str>,
+    /// The environment.
+    pub env: u32,
+    /// The number of the episode (episodes the env ended before it).
+    pub episode: u64,
 }
 
 /// What a commit did.
@@ -75,15 +94,33 @@ pub struct Committed {
     pub pool: Arc<Pool>,
     /// Per operation, in order: whether it changed the pool.
     pub changed: Vec<bool>,
+    /// The pool version right after this commit's own changes. A store shared with other
+    /// servers may return a `pool` that already holds later changes of theirs, with a
+    /// higher version; this one is the commit's own (SPEC §10: one version per change).
+    pub version: u64,
 }
 
-/// A pool changed in the store (by this server or another one).
+impl Committed {
+    /// A commit whose result is `pool` itself (nobody else changed it meanwhile).
+    pub fn new(pool: Arc<Pool>, changed: Vec<bool>) -> Committed {
+        let version = pool.version();
+        Committed {
+            pool,
+            changed,
+            version,
+        }
+    }
+}
+
+/// A pool changed in the store (by this server or another one), or its task was deleted.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PoolChanged {
     /// The task id.
     pub task: String,
-    /// The pool version after the change.
+    /// The pool version after the change (0 for a deletion).
     pub version: u64,
+    /// The task was deleted.
+    pub deleted: bool,
 }
 
 /// A storage failure.
@@ -96,6 +133,20 @@ pub enum StoreError {
         path: PathBuf,
         /// What went wrong.
         message: String,
+    },
+    /// The store cannot be reached now (e.g. Redis is down); the call may succeed later.
+    #[error("{what}: the store is unavailable: {message}")]
+    Unavailable {
+        /// The store and what was being done.
+        what: String,
+        /// What went wrong.
+        message: String,
+    },
+    /// The task no longer exists in the store (deleted, perhaps by another server).
+    #[error("task {task:?} no longer exists in the store")]
+    Gone {
+        /// The task id.
+        task: String,
     },
     /// The pool changed since the version a conditional commit was planned against.
     #[error("task {task:?}: the pool is at version {found}, the commit expected {expected}")]
@@ -126,7 +177,7 @@ pub fn apply_ops(base: &Pool, ops: Vec<PoolOp>) -> (Pool, Vec<bool>) {
         .into_iter()
         .map(|op| {
             let change = match op {
-                PoolOp::Offer { actions, score } => pool.plan_offer(actions, score),
+                PoolOp::Offer { actions, score, .. } => pool.plan_offer(actions, score),
                 PoolOp::Reset => Some(pool.plan_reset()),
             };
             change.map(|c| pool.apply(&c)).is_some()
@@ -145,8 +196,14 @@ pub trait Store: Send + Sync + 'static {
     fn describe(&self) -> String;
     /// Every stored task. Fails, naming the file, on anything corrupt or truncated.
     async fn load(&self) -> Result<Vec<StoredTask>, StoreError>;
-    /// Persists a new task with an empty pool.
-    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError>;
+    /// Persists a new task with an empty pool. A store shared by several servers creates
+    /// it only if no server did: it returns the config of a task that already exists
+    /// (`Some`) and changes nothing then.
+    async fn create_task(
+        &self,
+        id: &str,
+        config: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError>;
     /// Removes a task and its pool.
     async fn delete_task(&self, id: &str) -> Result<(), StoreError>;
     /// Applies `ops` against the store's current pool of `id`, atomically, and persists
@@ -175,10 +232,34 @@ pub trait Store: Send + Sync + 'static {
         let _ = id;
         Ok(None)
     }
-    /// Notifications of pool changes made through this store by any server, for stores
-    /// shared by several servers; `None` for a store only this server writes.
+    /// Notifications of pool changes and deletions made through this store by any
+    /// server, for stores shared by several servers; `None` for a store only this server
+    /// writes. A shared store delivers every change within its documented staleness
+    /// bound (notifications, with a poll as backstop).
     fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
         None
+    }
+    /// Whether other servers may create, change and delete tasks in this store (then the
+    /// registry asks it about tasks it does not know, and lists from it).
+    fn is_shared(&self) -> bool {
+        false
+    }
+    /// One task as stored now, `None` if the store has no task `id` (shared stores;
+    /// others answer `None`).
+    async fn load_task(&self, id: &str) -> Result<Option<StoredTask>, StoreError> {
+        let _ = id;
+        Ok(None)
+    }
+    /// The ids of every stored task (shared stores; others answer `None`).
+    async fn task_ids(&self) -> Result<Option<Vec<String>>, StoreError> {
+        Ok(None)
+    }
+    /// The episode ends of `client` the store committed on task `id`, as (env, episodes
+    /// ended): what a server resuming that client's stream must not commit again
+    /// (SPEC §9; shared stores, others answer nothing).
+    async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
+        let _ = (id, client);
+        Ok(Vec::new())
     }
 }
 
@@ -192,6 +273,7 @@ mod tests {
         let offer = |score| PoolOp::Offer {
             actions: ActionSeq::Discrete(vec![0]),
             score,
+            end: None,
         };
         let (pool, changed) = apply_ops(&base, vec![offer(1.0), offer(1.0), offer(2.0)]);
         assert_eq!(changed, vec![true, false, true]);

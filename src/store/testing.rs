@@ -41,6 +41,7 @@ impl TestStore {
         let _ = self.tx.send(PoolChanged {
             task: task.to_string(),
             version,
+            deleted: false,
         });
     }
 }
@@ -53,7 +54,11 @@ impl Store for TestStore {
     async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
         Ok(Vec::new())
     }
-    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+    async fn create_task(
+        &self,
+        id: &str,
+        config: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError> {
         self.inner.create_task(id, config).await
     }
     async fn delete_task(&self, id: &str) -> Result<(), StoreError> {

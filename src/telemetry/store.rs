@@ -33,7 +33,11 @@ impl Store for MeteredStore {
         self.inner.load().await
     }
 
-    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+    async fn create_task(
+        &self,
+        id: &str,
+        config: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError> {
         self.inner.create_task(id, config).await
     }
 
@@ -70,6 +74,22 @@ impl Store for MeteredStore {
 
     fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
         self.inner.changes()
+    }
+
+    fn is_shared(&self) -> bool {
+        self.inner.is_shared()
+    }
+
+    async fn load_task(&self, id: &str) -> Result<Option<StoredTask>, StoreError> {
+        self.inner.load_task(id).await
+    }
+
+    async fn task_ids(&self) -> Result<Option<Vec<String>>, StoreError> {
+        self.inner.task_ids().await
+    }
+
+    async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
+        self.inner.ended_episodes(id, client).await
     }
 }
 

@@ -182,7 +182,7 @@ proptest! {
         let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
         rt.block_on(async {
             let (r, _t, mut s) = setup(2, 3).await;
-            let mut witness = open(&r, "t", 1).unwrap();
+            let mut witness = open(&r, "t", 1).await.unwrap();
             let probe = Batch { actions: &[1], rewards: &[0.0], ..Default::default() };
             for cols in &batches {
                 let batch = cols.batch();

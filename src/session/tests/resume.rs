@@ -28,7 +28,7 @@ async fn a_resumed_episode_continues_exactly_as_an_uninterrupted_one() {
         want.push(whole.step(&one(a, &[0.5], false)).await.unwrap().outputs[0]);
     }
     // The same episode, broken after 3 steps and resumed on a new stream.
-    let mut first = open(&r, "t", 1).unwrap();
+    let mut first = open(&r, "t", 1).await.unwrap();
     for a in &actions[..3] {
         first.step(&one(a, &[0.5], false)).await.unwrap();
     }
@@ -46,7 +46,7 @@ async fn a_resumed_episode_continues_exactly_as_an_uninterrupted_one() {
         resume: &resume,
         ..Default::default()
     };
-    let mut resumed = StreamSession::open(&r, &req).unwrap();
+    let mut resumed = StreamSession::open(&r, &req).await.unwrap();
     for (j, a) in actions[3..].iter().enumerate() {
         let got = resumed.step(&one(a, &[0.5], false)).await.unwrap().outputs[0];
         assert_eq!(got, want[3 + j], "step {}", 3 + j);
@@ -75,7 +75,7 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
         resume,
         client_id: "client-1",
     };
-    let mut s = StreamSession::open(&r, &with_client(&[])).unwrap();
+    let mut s = StreamSession::open(&r, &with_client(&[])).await.unwrap();
     s.step(&one(&[1], &[1.0], false)).await.unwrap();
     s.step(&one(&[0], &[1.0], true)).await.unwrap();
     assert_eq!(t.stats().pool_version, 1);
@@ -89,7 +89,9 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
         reward_sum: 1.0,
         episode: 0,
     }];
-    let mut s = StreamSession::open(&r, &with_client(&BEFORE)).unwrap();
+    let mut s = StreamSession::open(&r, &with_client(&BEFORE))
+        .await
+        .unwrap();
     let again = s.step(&one(&[0], &[1.0], true)).await.unwrap();
     assert_eq!(again.outputs[0].step, 1, "shaped as the same step");
     assert_eq!(again.pool_version, 1, "not committed twice");
@@ -106,6 +108,7 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
             ..with_client(&BEFORE)
         },
     )
+    .await
     .unwrap();
     other.step(&one(&[0], &[1.0], true)).await.unwrap();
     assert_eq!(t.stats().pool_version, 3);
@@ -170,7 +173,7 @@ async fn an_invalid_resume_opens_nothing_and_names_the_field() {
             ..Default::default()
         };
         assert_eq!(
-            field(StreamSession::open(&r, &req).err().unwrap()),
+            field(StreamSession::open(&r, &req).await.err().unwrap()),
             want,
             "case {i}"
         );

@@ -90,7 +90,7 @@ pub(super) fn check_root_format(format: u32) -> Result<(), String> {
 
 /// Binary trajectory file: magic, format, kind, dim, seq, score, length, payload, CRC-32
 /// of everything before it; all little-endian.
-pub(super) fn encode_trajectory(t: &Trajectory) -> Vec<u8> {
+pub(in crate::store) fn encode_trajectory(t: &Trajectory) -> Vec<u8> {
     let (kind, dim, len) = match &t.actions {
         ActionSeq::Discrete(v) => (0u32, 0u32, v.len()),
         ActionSeq::Continuous { dim, data } => (1, *dim as u32, data.len() / dim),
@@ -141,7 +141,10 @@ pub(super) fn decode_trajectory(
 /// Decodes and checks a trajectory file's bytes (from a file or the commit log) for a
 /// task with `config`: length, magic, checksum, format, the payload size, and the actions
 /// against the action space (the validator every request uses).
-pub(super) fn decode_trajectory_bytes(b: &[u8], config: &TaskConfig) -> Result<Trajectory, String> {
+pub(in crate::store) fn decode_trajectory_bytes(
+    b: &[u8],
+    config: &TaskConfig,
+) -> Result<Trajectory, String> {
     if b.len() < HEADER + 4 {
         return Err(format!(
             "truncated: {} bytes, a trajectory file has at least {}",

@@ -42,6 +42,7 @@ use super::{apply_ops, Committed, Counters, PoolOp, Store, StoreError, StoredTas
 use crate::core::{Pool, TaskConfig};
 pub use codec::FORMAT_VERSION;
 use codec::{check_root_format, RootFile, TaskFile, FILE_FORMAT, FORMAT_V1};
+pub(super) use codec::{decode_trajectory_bytes, encode_trajectory};
 use files::{dir_name, err, fsync_dir, read_json, remove_tmp_files, write_atomic};
 use snapshot::{write_pool_file, write_snapshot};
 use writer::{Change, Log, Queue, Stats};
@@ -408,9 +409,14 @@ impl Store for DiskStore {
         self.run(|s| load::load(s, &mut s.io.lock())).await
     }
 
-    async fn create_task(&self, id: &str, config: &TaskConfig) -> Result<(), StoreError> {
+    async fn create_task(
+        &self,
+        id: &str,
+        config: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError> {
         let (id, config) = (id.to_string(), *config);
-        self.run(move |s| s.create_task(&id, &config)).await
+        self.run(move |s| s.create_task(&id, &config)).await?;
+        Ok(None)
     }
 
     async fn delete_task(&self, id: &str) -> Result<(), StoreError> {
@@ -452,7 +458,7 @@ impl Store for DiskStore {
                 )
             })??;
         }
-        Ok(Committed { pool, changed })
+        Ok(Committed::new(pool, changed))
     }
 
     async fn save_counters(

@@ -225,7 +225,10 @@ impl EngineStream {
             resume: &[],
             client_id: &self.client_id,
         };
-        self.session = Some(StreamSession::open(&self.registry, &req)?);
+        self.session = Some(
+            self.rt
+                .block_on(StreamSession::open(&self.registry, &req))?,
+        );
         Ok(())
     }
 }

@@ -1,0 +1,381 @@
+//! Many servers, one pool (SPEC §10) and resume across them (§9), against a real
+//! `redis-server` started by the tests on a free port: replicas are real servers on
+//! 127.0.0.1:0 (in-process, or the real binary where a test kills one with -9).
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::{
+    batch, connect, create, discrete, dtraj, get_pool, get_task, Binary, Client, RedisServer,
+    Stream,
+};
+use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
+use tamrm::server::RunningServer;
+use tonic::Code;
+
+/// A replica of the shared store: an in-process server using `redis`.
+async fn replica(redis: &RedisServer) -> RunningServer {
+    let url = redis.url();
+    common::start_server(None, move |s| {
+        s.store = Some(url);
+        s.store_poll_ms = 200;
+    })
+    .await
+}
+
+/// A deterministic vector-env run: `n` batches of 2 envs, episodes of random length.
+fn script(seed: u64, n: usize) -> Vec<proto::StepBatch> {
+    let mut x = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    let mut next = move |m: u64| {
+        x = x
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (x >> 33) % m
+    };
+    (0..n)
+        .map(|_| {
+            let actions: Vec<u32> = (0..2).map(|_| next(3) as u32).collect();
+            let rewards: Vec<f64> = (0..2).map(|_| next(7) as f64 - 2.0).collect();
+            let ends: Vec<bool> = (0..2).map(|_| next(5) == 0).collect();
+            batch(&actions, &rewards, &ends)
+        })
+        .collect()
+}
+
+async fn run(c: &mut Client, id: &str, batches: &[proto::StepBatch]) -> Vec<proto::ShapedBatch> {
+    let (mut s, _) = Stream::open(c, id, 2).await.unwrap();
+    let mut out = Vec::new();
+    for b in batches {
+        out.push(s.step(b.clone()).await.unwrap());
+    }
+    out
+}
+
+/// Retries `f` until it holds, for at most 10 s (changes from another replica arrive
+/// within the staleness bound).
+async fn eventually<F, Fut>(what: &str, mut f: F)
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = bool>,
+{
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !f().await {
+        assert!(Instant::now() < deadline, "never: {what}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_through_a_replica_gets_exactly_the_rewards_of_a_lone_server() {
+    let redis = RedisServer::start();
+    let shared = replica(&redis).await;
+    let alone = common::start_server(None, |_| {}).await;
+    let (mut r, mut m) = (connect(shared.addr()).await, connect(alone.addr()).await);
+    for c in [&mut r, &mut m] {
+        create(c, "t", discrete(3, 3, 2, 1, 2)).await;
+    }
+    let batches = script(7, 300);
+    let (got, want) = (
+        run(&mut r, "t", &batches).await,
+        run(&mut m, "t", &batches).await,
+    );
+    assert!(
+        want.last().unwrap().pool_version > 5,
+        "the pool changed often"
+    );
+    assert_eq!(got, want);
+    assert_eq!(get_pool(&mut r, "t").await, get_pool(&mut m, "t").await);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_replicas_lose_no_update_and_count_each_change_once() {
+    let redis = RedisServer::start();
+    let (a, b) = (replica(&redis).await, replica(&redis).await);
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
+    // Concurrent offers through both replicas to a small pool: every stored offer got a
+    // version of its own, with no gap and no repeat.
+    let offer = |mut c: Client, side: u32| async move {
+        let mut stored = Vec::new();
+        for i in 0..60u32 {
+            let score = f64::from((i * 7 + side * 3) % 23);
+            let r = common::add(&mut c, "t", dtraj(&[side, i % 3], score)).await;
+            if r.inserted {
+                stored.push(r.pool_version);
+            }
+        }
+        stored
+    };
+    let (sa, sb) = tokio::join!(offer(ca.clone(), 0), offer(cb.clone(), 1));
+    let mut versions: Vec<u64> = sa.iter().chain(&sb).copied().collect();
+    versions.sort();
+    let n = versions.len() as u64;
+    assert_eq!(versions, (1..=n).collect::<Vec<_>>());
+    for c in [&mut ca, &mut cb] {
+        let c = c.clone();
+        eventually("both replicas see the last version", || {
+            let mut c = c.clone();
+            async move { get_task(&mut c, "t").await.stats.unwrap().pool_version == n }
+        })
+        .await;
+    }
+    // Streams on both replicas, every episode stored (a pool large enough): the version
+    // is the number of episodes ended on either.
+    create(&mut ca, "big", discrete(3, 500, 2, 1, 2)).await;
+    let (sa, sb) = (script(1, 150), script(2, 150));
+    let (ra, rb) = tokio::join!(run(&mut ca, "big", &sa), run(&mut cb, "big", &sb));
+    let ends =
+        |b: &[proto::StepBatch]| b.iter().flat_map(|x| &x.terminated).filter(|t| **t).count();
+    let total = (ends(&sa) + ends(&sb)) as u64;
+    assert!(ra.len() == 150 && rb.len() == 150);
+    // The last answers on each side report every change of its own; B's snapshot holds
+    // A's last changes within the staleness bound.
+    let last = ra[149].pool_version.max(rb[149].pool_version);
+    assert!(last <= total);
+    for c in [&ca, &cb] {
+        let c = c.clone();
+        eventually("each replica's pool holds every episode of both", || {
+            let mut c = c.clone();
+            async move { get_pool(&mut c, "big").await.pool_version == total }
+        })
+        .await;
+    }
+    let pool = get_pool(&mut cb, "big").await;
+    assert_eq!(pool.trajectories.len() as u64, total);
+    assert_eq!(pool, get_pool(&mut ca, "big").await);
+    // A reset through B is one change, seen by A.
+    let v = cb
+        .reset_pool(proto::ResetPoolRequest {
+            task_id: "big".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .stats
+        .unwrap()
+        .pool_version;
+    assert_eq!(v, total + 1);
+    let c = ca.clone();
+    eventually("A sees the reset", || {
+        let mut c = c.clone();
+        async move { get_pool(&mut c, "big").await.trajectories.is_empty() }
+    })
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_task_created_on_one_replica_is_usable_at_once_on_another() {
+    let redis = RedisServer::start();
+    let (a, b) = (replica(&redis).await, replica(&redis).await);
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
+    assert_eq!(get_task(&mut cb, "t").await.task_id, "t");
+    let (mut s, _) = Stream::open(&mut cb, "t", 1).await.unwrap();
+    let answer = s.step(batch(&[1], &[1.0], &[true])).await.unwrap();
+    assert_eq!(answer.pool_version, 1);
+    // The same config again through B is the same task; another is refused.
+    create(&mut cb, "t", discrete(3, 3, 2, 1, 2)).await;
+    let err = cb
+        .create_task(proto::CreateTaskRequest {
+            task_id: "t".into(),
+            config: Some(discrete(4, 3, 2, 1, 2)),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::AlreadyExists, "{err:?}");
+    assert!(err.message().contains("num_actions"), "{}", err.message());
+    // Listings are the store's.
+    create(&mut cb, "u", discrete(2, 3, 2, 1, 2)).await;
+    let ids: Vec<String> = ca
+        .list_tasks(proto::ListTasksRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .tasks
+        .into_iter()
+        .map(|t| t.task_id)
+        .collect();
+    assert_eq!(ids, ["t", "u"]);
+    // A deletion on A ends B's stream and B's lookups.
+    ca.delete_task(proto::DeleteTaskRequest {
+        task_id: "t".into(),
+    })
+    .await
+    .unwrap();
+    let c = cb.clone();
+    eventually("B forgets the deleted task", || {
+        let mut c = c.clone();
+        async move {
+            c.get_task(proto::GetTaskRequest {
+                task_id: "t".into(),
+            })
+            .await
+            .is_err_and(|e| e.code() == Code::NotFound)
+        }
+    })
+    .await;
+    let err = s.step(batch(&[1], &[1.0], &[false])).await.unwrap_err();
+    assert_eq!(err.code(), Code::NotFound, "{err:?}");
+    // Re-created with another config: a new task everywhere.
+    create(&mut cb, "t", discrete(5, 3, 2, 1, 2)).await;
+    assert_eq!(get_task(&mut ca, "t").await.config.unwrap().num_actions, 5);
+}
+
+/// Each env's current episode, as a resuming client keeps it.
+#[derive(Clone, Default)]
+struct Episodes {
+    actions: [Vec<u32>; 2],
+    reward_sum: [f64; 2],
+    ended: [u64; 2],
+}
+
+impl Episodes {
+    fn record(&mut self, b: &proto::StepBatch) {
+        for e in 0..2 {
+            self.actions[e].push(b.actions[e]);
+            self.reward_sum[e] += b.rewards[e];
+            if b.terminated[e] {
+                self.actions[e].clear();
+                self.reward_sum[e] = 0.0;
+                self.ended[e] += 1;
+            }
+        }
+    }
+
+    fn resume(&self) -> Vec<proto::EnvResume> {
+        (0..2)
+            .map(|e| proto::EnvResume {
+                env_id: e as u32,
+                actions: self.actions[e].clone(),
+                reward_sum: self.reward_sum[e],
+                episode: self.ended[e],
+                ..Default::default()
+            })
+            .collect()
+    }
+}
+
+async fn open_resumed(c: &mut Client, id: &str, eps: &Episodes) -> Stream {
+    let mut s = Stream::raw(c).await.unwrap();
+    s.send(ShapeRequest {
+        kind: Some(shape_request::Kind::Open(proto::Open {
+            task_id: id.into(),
+            num_envs: 2,
+            resume: eps.resume(),
+            client_id: "client-7".into(),
+        })),
+    })
+    .await;
+    match s.recv().await.unwrap() {
+        Some(ShapeResponse {
+            kind: Some(shape_response::Kind::Opened(_)),
+        }) => s,
+        other => panic!("expected opened, got {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn after_kill_9_of_its_replica_a_client_resumes_on_another_with_the_same_rewards() {
+    let redis = RedisServer::start();
+    let alone = common::start_server(None, |_| {}).await;
+    let mut m = connect(alone.addr()).await;
+    create(&mut m, "t", discrete(3, 3, 2, 1, 2)).await;
+    let batches = script(11, 200);
+    let want = run(&mut m, "t", &batches).await;
+    // The batch after which A dies: one that ends an episode, answered, whose answer the
+    // client then "loses" and sends again on B.
+    let k = (60..200)
+        .find(|&i| batches[i].terminated.iter().any(|t| *t))
+        .unwrap();
+
+    let url = redis.url();
+    let args = ["--store", url.as_str(), "--store-poll-ms", "200"];
+    let a = Binary::start(&args);
+    let b = Binary::start(&args);
+    let (mut ca, mut cb) = (connect(a.addr).await, connect(b.addr).await);
+    create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
+    let mut eps = Episodes::default();
+    let mut s = open_resumed(&mut ca, "t", &eps).await;
+    for (i, b) in batches.iter().enumerate().take(k + 1) {
+        assert_eq!(s.step(b.clone()).await.unwrap(), want[i], "batch {i} on A");
+        if i < k {
+            eps.record(b);
+        }
+    }
+    drop(a); // kill -9
+    drop(s);
+    let mut s = open_resumed(&mut cb, "t", &eps).await;
+    // The re-sent batch: A committed its episode end before dying, so B does not commit
+    // it again (the version is the uninterrupted one). Its steps are shaped against the
+    // pool as it is now, which holds that episode already (SPEC §9: "with the same pool").
+    let again = s.step(batches[k].clone()).await.unwrap();
+    assert_eq!(
+        again.pool_version, want[k].pool_version,
+        "not committed twice"
+    );
+    assert_eq!(again.steps, want[k].steps);
+    // Every later batch: exactly the uninterrupted stream's answers.
+    for (i, b) in batches.iter().enumerate().skip(k + 1) {
+        assert_eq!(s.step(b.clone()).await.unwrap(), want[i], "batch {i} on B");
+    }
+    assert_eq!(get_pool(&mut cb, "t").await, get_pool(&mut m, "t").await);
+    drop(b);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nothing_acknowledged_is_lost_when_redis_is_killed() {
+    let mut redis = RedisServer::start();
+    let r = replica(&redis).await;
+    let mut c = connect(r.addr()).await;
+    create(&mut c, "t", discrete(3, 4, 2, 1, 2)).await;
+    for i in 0..12u32 {
+        common::add(&mut c, "t", dtraj(&[i % 3, 1], f64::from(i % 5))).await;
+    }
+    run(&mut c, "t", &script(3, 80)).await;
+    let before = get_pool(&mut c, "t").await;
+    redis.kill();
+    let err = c
+        .add_trajectory(proto::AddTrajectoryRequest {
+            task_id: "t".into(),
+            trajectory: Some(dtraj(&[1], 100.0)),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::Unavailable, "{err:?}");
+    assert_eq!(
+        get_pool(&mut c, "t").await,
+        before,
+        "a failed commit changes nothing"
+    );
+    redis.restart();
+    // A new replica finds every acknowledged change.
+    let fresh = replica(&redis).await;
+    let mut f = connect(fresh.addr()).await;
+    assert_eq!(get_pool(&mut f, "t").await, before);
+    // The old one reconnects by itself.
+    let c2 = c.clone();
+    eventually("the replica commits again", || {
+        let mut c = c2.clone();
+        async move {
+            c.add_trajectory(proto::AddTrajectoryRequest {
+                task_id: "t".into(),
+                trajectory: Some(dtraj(&[1], 100.0)),
+            })
+            .await
+            .is_ok()
+        }
+    })
+    .await;
+    eventually("the fresh replica sees that commit", || {
+        let mut f = f.clone();
+        async move { get_pool(&mut f, "t").await.pool_version == before.pool_version + 1 }
+    })
+    .await;
+    assert_eq!(
+        get_pool(&mut c, "t").await.pool_version,
+        before.pool_version + 1
+    );
+}
