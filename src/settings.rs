@@ -107,7 +107,7 @@ pub struct ServeArgs {
     #[arg(long, env = "TAMRM_PORT_FILE", value_name = "FILE")]
     pub port_file: Option<PathBuf>,
     /// Keep tasks and pools in Redis, shared with every server given the same URL:
-    /// `redis://[:PASSWORD@]HOST:PORT[/DB]` (see docs/scaling.md). Excludes --data-dir.
+    /// `redis://[[USER]:PASSWORD@]HOST:PORT[/DB]` (see docs/scaling.md). Excludes --data-dir.
     #[arg(long, env = "TAMRM_STORE", value_name = "URL")]
     pub store: Option<String>,
     /// With --store: how often every task's pool version is polled, in milliseconds, as
@@ -226,9 +226,14 @@ impl Settings {
                     "store and data_dir exclude each other: tasks live either in Redis (--store) or in a data dir (--data-dir)".into(),
                 ));
             }
-            if !(url.starts_with("redis://") || url.starts_with("rediss://")) {
+            if url.starts_with("rediss://") {
+                return Err(SettingsError(
+                    "store: rediss:// (TLS to Redis) is not supported by this build; use redis:// on a private network or through a TLS tunnel (docs/scaling.md)".into(),
+                ));
+            }
+            if !url.starts_with("redis://") {
                 return Err(SettingsError(format!(
-                    "store: expected a redis:// or rediss:// URL, got {:?}",
+                    "store: expected a redis:// URL, got {:?}",
                     url.split('@').next_back().unwrap_or(url)
                 )));
             }
@@ -351,6 +356,18 @@ mod tests {
 
     /// All layering checks live in one test because they set process environment
     /// variables, which no other test reads.
+    #[test]
+    fn the_store_url_is_checked() {
+        let err = |args: &[&str]| Settings::resolve(&parse(args)).unwrap_err().to_string();
+        let s = Settings::resolve(&parse(&["--store", "redis://h:6379/2"])).unwrap();
+        assert_eq!(s.store.as_deref(), Some("redis://h:6379/2"));
+        assert!(err(&["--store", "redis://h:1", "--data-dir", "/d"]).contains("exclude"));
+        assert!(err(&["--store", "rediss://h:1"]).contains("not supported"));
+        let bad = err(&["--store", "http://:secret@h:1"]);
+        assert!(bad.contains("redis://") && !bad.contains("secret"), "{bad}");
+        assert!(err(&["--store", "redis://h:1", "--store-poll-ms", "0"]).contains("store_poll_ms"));
+    }
+
     #[test]
     fn defaults_then_file_then_env_then_flags() {
         let dir = tempfile::tempdir().unwrap();

@@ -1,6 +1,8 @@
 //! `tamrm.Client`'s transport: a tonic channel to a server, unary calls on serialized
 //! messages, and `Shape` streams whose round trips run with the GIL released.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use prost::Message;
@@ -29,12 +31,50 @@ const MAX_RECEIVE: usize = 256 * 1024 * 1024;
 /// How often a step waiting for its answer lets Python handle a signal (Ctrl-C).
 const SIGNAL_CHECK: Duration = Duration::from_millis(100);
 
-/// A connection to a server (`tamrm._native.Channel`).
-#[pyclass(frozen, module = "tamrm._native")]
-pub struct Channel {
+/// One server address of a channel, connected lazily.
+struct Target {
+    /// The address as given (for messages).
+    name: String,
     endpoint: Endpoint,
     channel: TonicChannel,
     client: ShapingClient<TonicChannel>,
+}
+
+/// The addresses of a channel and the one in use: calls and streams go to the current
+/// address and move on to the next when it cannot be reached (SPEC §9, §10: any replica
+/// serves any task).
+struct Targets {
+    list: Vec<Target>,
+    current: AtomicUsize,
+}
+
+impl Targets {
+    fn current(&self) -> usize {
+        self.current.load(Ordering::Relaxed) % self.list.len()
+    }
+
+    fn get(&self, i: usize) -> &Target {
+        &self.list[i % self.list.len()]
+    }
+
+    /// The order to try the addresses in after address `failed` failed: every other one,
+    /// then `failed` itself last.
+    fn after(&self, failed: usize) -> impl Iterator<Item = usize> {
+        let n = self.list.len();
+        (1..=n).map(move |k| (failed + k) % n)
+    }
+
+    /// All addresses, for messages.
+    fn names(&self) -> String {
+        let names: Vec<&str> = self.list.iter().map(|t| t.name.as_str()).collect();
+        names.join(", ")
+    }
+}
+
+/// A connection to one or several servers (`tamrm._native.Channel`).
+#[pyclass(frozen, module = "tamrm._native")]
+pub struct Channel {
+    targets: Arc<Targets>,
     metadata: MetadataMap,
     /// Whether the channel speaks TLS (for the hints of connection errors).
     tls: bool,
@@ -176,6 +216,26 @@ fn transport_error(target: &str, tls: bool, s: Status) -> Status {
     Status::new(code, message)
 }
 
+/// Methods that change nothing, or whose repetition changes nothing more (a `CreateTask`
+/// with the same config is the same task): after a connection broke under them they can be
+/// sent to the next address.
+const IDEMPOTENT: [&str; 4] = ["GetTask", "ListTasks", "GetPool", "CreateTask"];
+
+/// Whether a failed unary call may be sent to the next address: the server refused it
+/// without applying anything (its own UNAVAILABLE: shutting down, its store down), the
+/// connection could not be made (nothing was sent), or the call is idempotent and the
+/// connection broke.
+fn may_fail_over(method: &str, s: &Status) -> bool {
+    if s.code() != Code::Unavailable && !resumable(s) {
+        return false;
+    }
+    std::error::Error::source(s).is_none()
+        || IDEMPOTENT.contains(&method)
+        || tamrm::server::tls::status_chain(s)
+            .to_lowercase()
+            .contains("connect error")
+}
+
 async fn unary(
     mut c: ShapingClient<TonicChannel>,
     method: &str,
@@ -203,40 +263,59 @@ async fn unary(
     })
 }
 
+/// A lazily connecting channel to one address.
+fn connect_lazy(rt: &Runtime, target: &str, options: &ChannelOptions) -> PyResult<Target> {
+    let (authority, unix) = split_target(target)?;
+    let endpoint = options.endpoint(target, &authority)?;
+    // The lazy channels spawn on the current runtime.
+    let _enter = rt.enter();
+    let channel = match &unix {
+        None => endpoint.connect_lazy(),
+        Some(path) => {
+            let path = path.clone();
+            endpoint.connect_with_connector_lazy(tower::service_fn(
+                move |_: tonic::transport::Uri| {
+                    let path = path.clone();
+                    async move {
+                        let stream = tokio::net::UnixStream::connect(path).await?;
+                        Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
+                    }
+                },
+            ))
+        }
+    };
+    Ok(Target {
+        name: target.to_string(),
+        endpoint,
+        client: client(channel.clone()),
+        channel,
+    })
+}
+
 #[pymethods]
 impl Channel {
-    /// A lazily connecting channel to `target` (`host:port` or `unix:PATH`) with
-    /// `options` (TLS, keepalive, metadata sent on every call).
+    /// A lazily connecting channel to `targets` (each `host:port` or `unix:PATH`; the
+    /// first is used first) with `options` (TLS, keepalive, metadata sent on every call).
     #[new]
-    #[pyo3(signature = (target, options=None))]
-    fn new(target: &str, options: Option<ChannelOptions>) -> PyResult<Channel> {
+    #[pyo3(signature = (targets, options=None))]
+    fn new(targets: Vec<String>, options: Option<ChannelOptions>) -> PyResult<Channel> {
         let rt = runtime()?;
         let options = options.unwrap_or_default();
-        let (authority, unix) = split_target(target)?;
-        let endpoint = options.endpoint(target, &authority)?;
-        let md = options.metadata_map()?;
-        // The lazy channels spawn on the current runtime.
-        let _enter = rt.enter();
-        let channel = match &unix {
-            None => endpoint.connect_lazy(),
-            Some(path) => {
-                let path = path.clone();
-                endpoint.connect_with_connector_lazy(tower::service_fn(
-                    move |_: tonic::transport::Uri| {
-                        let path = path.clone();
-                        async move {
-                            let stream = tokio::net::UnixStream::connect(path).await?;
-                            Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
-                        }
-                    },
-                ))
-            }
-        };
+        if targets.is_empty() {
+            return Err(PyValueError::new_err(
+                "at least one server address is needed",
+            ));
+        }
+        let list = targets
+            .iter()
+            .map(|t| connect_lazy(rt, t, &options))
+            .collect::<PyResult<Vec<_>>>()?;
         Ok(Channel {
-            endpoint,
-            client: client(channel.clone()),
-            channel,
-            metadata: md,
+            targets: Arc::new(Targets {
+                list,
+                current: AtomicUsize::new(0),
+            }),
+            metadata: options.metadata_map()?,
             tls: options.uses_tls(),
             resume_timeout: options.resume_timeout(),
             rt,
@@ -273,45 +352,82 @@ impl Channel {
                 )
             })?),
         };
-        let (c, md, rt, tls) = (self.client.clone(), &self.metadata, self.rt, self.tls);
-        let target = self.endpoint.uri().to_string();
+        let (md, rt, tls, targets) = (&self.metadata, self.rt, self.tls, &*self.targets);
+        let one = |i: usize| {
+            let t = targets.get(i);
+            let target = t.endpoint.uri().to_string();
+            rt.block_on(async {
+                let fut = unary(t.client.clone(), method, request, md, timeout);
+                match timeout {
+                    // The header deadline bounds the server; this one the connection.
+                    Some(d) => tokio::time::timeout(d + Duration::from_millis(500), fut)
+                        .await
+                        .unwrap_or_else(|_| {
+                            Err(Status::deadline_exceeded(format!(
+                                "no answer from {target} in {}s",
+                                d.as_secs_f64()
+                            )))
+                        }),
+                    None => fut.await,
+                }
+            })
+            .map_err(|s| (may_fail_over(method, &s), transport_error(&target, tls, s)))
+        };
         let out = py
             .detach(|| {
-                rt.block_on(async {
-                    let fut = unary(c, method, request, md, timeout);
-                    match timeout {
-                        // The header deadline bounds the server; this one the connection.
-                        Some(t) => tokio::time::timeout(t + Duration::from_millis(500), fut)
-                            .await
-                            .unwrap_or_else(|_| {
-                                Err(Status::deadline_exceeded(format!(
-                                    "no answer from {target} in {}s",
-                                    t.as_secs_f64()
-                                )))
-                            }),
-                        None => fut.await,
+                let first = targets.current();
+                let mut failure = match one(first) {
+                    Ok(out) => return Ok(out),
+                    Err((true, s)) if targets.list.len() > 1 => s,
+                    Err((_, s)) => return Err(s),
+                };
+                for i in targets.after(first).take(targets.list.len() - 1) {
+                    match one(i) {
+                        Ok(out) => {
+                            targets.current.store(i, Ordering::Relaxed);
+                            return Ok(out);
+                        }
+                        Err((true, s)) => failure = s,
+                        Err((false, s)) => return Err(s),
                     }
-                })
+                }
+                Err(Status::new(
+                    failure.code(),
+                    format!(
+                        "no server answered ({}): {}",
+                        targets.names(),
+                        failure.message()
+                    ),
+                ))
             })
-            .map_err(|s| status_error(&transport_error(&target, tls, s)))?;
+            .map_err(|s| status_error(&s))?;
         Ok(PyBytes::new(py, &out))
     }
 
     /// Blocks until a connection to the server is established, up to `timeout` seconds.
     /// A failed TLS handshake ends the wait at once: the server is there, and retrying
     /// with the same certificates cannot succeed.
+    /// With several addresses: until one of them connects (tried in turn from the
+    /// current one), which becomes the current one.
     fn wait_ready(&self, py: Python<'_>, timeout: f64) -> PyResult<()> {
-        let (endpoint, rt, tls) = (self.endpoint.clone(), self.rt, self.tls);
-        let target = self.endpoint.uri().to_string();
+        let (rt, tls, targets) = (self.rt, self.tls, &*self.targets);
+        let target = targets.names();
         py.detach(|| {
             rt.block_on(async {
                 let wait = Duration::try_from_secs_f64(timeout).unwrap_or(Duration::ZERO);
                 let deadline = tokio::time::Instant::now() + wait;
                 let mut last = None;
+                let mut i = targets.current();
                 loop {
                     let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+                    let endpoint = &targets.get(i).endpoint;
                     match tokio::time::timeout(left, endpoint.connect()).await {
-                        Ok(Ok(_)) => return Ok(()),
+                        Ok(Ok(_)) => {
+                            targets
+                                .current
+                                .store(i % targets.list.len(), Ordering::Relaxed);
+                            return Ok(());
+                        }
                         Ok(Err(e)) => {
                             let status =
                                 transport_error(&target, tls, Status::from_error(e.into()));
@@ -322,7 +438,11 @@ impl Channel {
                             if left.is_zero() {
                                 break;
                             }
-                            tokio::time::sleep(Duration::from_millis(50).min(left)).await;
+                            i += 1;
+                            if i % targets.list.len() == targets.current() {
+                                // Every address tried once: wait before the next round.
+                                tokio::time::sleep(Duration::from_millis(50).min(left)).await;
+                            }
                         }
                         Err(_) => break,
                     }
@@ -344,7 +464,8 @@ impl Channel {
     /// Whether `grpc.health.v1.Health/Check` answers SERVING for `service` within
     /// `timeout` seconds (retrying while the server cannot be reached yet).
     fn health(&self, py: Python<'_>, service: &str, timeout: f64) -> bool {
-        let (channel, md, rt) = (self.channel.clone(), &self.metadata, self.rt);
+        let channel = self.targets.get(self.targets.current()).channel.clone();
+        let (md, rt) = (&self.metadata, self.rt);
         let wait = Duration::try_from_secs_f64(timeout).unwrap_or(Duration::ZERO);
         py.detach(|| {
             rt.block_on(async {
@@ -383,9 +504,9 @@ impl Channel {
         client_id: &str,
     ) -> PyResult<NativeStream> {
         let mut stream = RemoteStream {
-            client: self.client.clone(),
+            targets: self.targets.clone(),
+            at: self.targets.current(),
             metadata: self.metadata.clone(),
-            target: self.endpoint.uri().to_string(),
             tls: self.tls,
             task_id: task_id.to_string(),
             num_envs,
@@ -397,7 +518,7 @@ impl Channel {
         };
         let tracker = Tracker::new(num_envs as usize, 0, false);
         let task = py
-            .detach(|| stream.open(&tracker))
+            .detach(|| stream.open_anywhere(&tracker))
             .map_err(|s| status_error(&s))?;
         Ok(NativeStream::new(
             Transport::Remote(stream),
@@ -409,9 +530,10 @@ impl Channel {
 
 /// One `Shape` stream to a server.
 pub(crate) struct RemoteStream {
-    client: ShapingClient<TonicChannel>,
+    /// The channel's addresses; `at` is the one this stream uses.
+    targets: Arc<Targets>,
+    at: usize,
     metadata: MetadataMap,
-    target: String,
     tls: bool,
     task_id: String,
     num_envs: u32,
@@ -423,6 +545,42 @@ pub(crate) struct RemoteStream {
 }
 
 impl RemoteStream {
+    /// The address this stream uses.
+    fn target(&self) -> String {
+        self.targets.get(self.at).endpoint.uri().to_string()
+    }
+
+    /// Opens the stream on the current address, or with several addresses, on the first
+    /// one after it that answers (an `Open` changes nothing, so it can go anywhere).
+    fn open_anywhere(&mut self, tracker: &Tracker) -> Result<proto::Task, Status> {
+        let first = self.at;
+        let mut failure = match self.open(tracker) {
+            Ok(task) => return Ok(task),
+            Err(s) if resumable(&s) && self.targets.list.len() > 1 => s,
+            Err(s) => return Err(s),
+        };
+        for i in self.targets.after(first).take(self.targets.list.len() - 1) {
+            self.at = i;
+            match self.open(tracker) {
+                Ok(task) => {
+                    self.targets.current.store(i, Ordering::Relaxed);
+                    return Ok(task);
+                }
+                Err(s) if resumable(&s) => failure = s,
+                Err(s) => return Err(s),
+            }
+        }
+        self.at = first;
+        Err(Status::new(
+            failure.code(),
+            format!(
+                "no server answered ({}): {}",
+                self.targets.names(),
+                failure.message()
+            ),
+        ))
+    }
+
     /// Opens the stream, resuming `tracker`'s episodes; returns the `opened` task.
     fn open(&mut self, tracker: &Tracker) -> Result<proto::Task, Status> {
         self.close();
@@ -435,9 +593,9 @@ impl RemoteStream {
             })),
         };
         let (tx, rx) = mpsc::channel(4);
-        let mut client = self.client.clone();
+        let mut client = self.targets.get(self.at).client.clone();
         let req = request(ReceiverStream::new(rx), &self.metadata, None);
-        let (target, tls) = (self.target.clone(), self.tls);
+        let (target, tls) = (self.target(), self.tls);
         let (inbound, first) = self.rt.block_on(async move {
             tx.send(open)
                 .await
@@ -491,7 +649,7 @@ impl RemoteStream {
                 StepError::Status(s) if resumable(&s) && s.code() != Code::Unavailable => {
                     Status::unavailable(format!(
                         "the connection to {} broke under the session: {}",
-                        self.target,
+                        self.target(),
                         s.message()
                     ))
                     .into()
@@ -505,6 +663,7 @@ impl RemoteStream {
         };
         let deadline = Instant::now() + limit;
         let mut pause = FIRST_PAUSE;
+        let mut attempt = 0usize;
         loop {
             let now = Instant::now();
             if now >= deadline {
@@ -512,13 +671,20 @@ impl RemoteStream {
                 return Err(Status::unavailable(format!(
                     "the session could not be resumed within resume_timeout_secs = {} ({}): {}",
                     limit.as_secs_f64(),
-                    self.target,
+                    self.targets.names(),
                     failure.message()
                 ))
                 .into());
             }
-            self.pause(pause.min(deadline - now))?;
-            pause = (pause * 2).min(MAX_PAUSE);
+            let n = self.targets.list.len();
+            attempt += 1;
+            // Each address in turn, starting with the one after the failed one (another
+            // replica), and a pause (doubling) before each round over all of them.
+            self.at = (self.at + 1) % n;
+            if attempt % n == 1 || n == 1 {
+                self.pause(pause.min(deadline - now))?;
+                pause = (pause * 2).min(MAX_PAUSE);
+            }
             match self.open(tracker) {
                 Ok(_) => {}
                 Err(s) if resumable(&s) => {
@@ -527,6 +693,7 @@ impl RemoteStream {
                 }
                 Err(s) => return Err(s.into()),
             }
+            self.targets.current.store(self.at, Ordering::Relaxed);
             match self.step_once(batch, tracker) {
                 Err(StepError::Status(s)) if resumable(&s) => failure = s,
                 other => return other,

@@ -38,6 +38,7 @@ __all__ = [
     "TaskCalls",
     "Timeout",
     "parse_target",
+    "parse_targets",
 ]
 
 #: Default deadline, in seconds, of every unary call (not of ``Shape`` streams).
@@ -140,10 +141,48 @@ def parse_target(target: str | None) -> str:
     return stripped
 
 
+#: What :class:`Client` takes as its target: one address, or several (replicas sharing
+#: one store, tried in turn).
+Targets = str | Sequence[str]
+
+
+def parse_targets(target: Targets | None) -> tuple[str, ...]:
+    """Return the gRPC targets of ``target``: one address, or a sequence of several.
+
+    ``None``: ``$TAMRM_ADDRESS``, which may name several addresses separated by commas
+    (``host1:50051,host2:50051``), else the default. Each address is checked as by
+    :func:`parse_target`.
+
+    Raises:
+        TypeError: Not a string or a sequence of strings.
+        ValueError: An empty sequence, or a malformed address (the message names it).
+    """
+    if target is None:
+        env = os.environ.get(ADDRESS_ENV)
+        if env is not None and "," in env:
+            parts = [p for p in env.split(",") if p.strip()]
+            if not parts:
+                raise ValueError(f"${ADDRESS_ENV} {env!r} names no address")
+            return tuple(parse_target(p) for p in parts)
+        return (parse_target(None),)
+    if isinstance(target, str):
+        return (parse_target(target),)
+    if not isinstance(target, Sequence):
+        raise TypeError(
+            f"target must be a str 'host:port' or a sequence of them, got {type(target).__name__}"
+        )
+    targets = tuple(parse_target(t) for t in target)
+    if not targets:
+        raise ValueError("target: an empty sequence names no server; give at least one address")
+    return targets
+
+
 _T = TypeVar("_T")
 
 
-def _rebuild_client(target: str, timeout: float | None, connection: ConnectionOptions) -> Client:
+def _rebuild_client(
+    target: Targets, timeout: float | None, connection: ConnectionOptions
+) -> Client:
     return Client(target, timeout=timeout, **connection)
 
 
@@ -398,8 +437,12 @@ class Client(TaskCalls, Closing):
     its own connection.
 
     Args:
-        target: The server address, ``host:port`` (surrounding whitespace is ignored).
-            Default: the ``TAMRM_ADDRESS`` environment variable, else ``127.0.0.1:50051``.
+        target: The server address, ``host:port`` (surrounding whitespace is ignored),
+            or a sequence of several: replicas sharing one store (``tamrm serve
+            --store redis://...``, docs/scaling.md). Calls go to the first; when it
+            cannot be reached, to the next, and a session whose server goes away resumes
+            on the next one. Default: the ``TAMRM_ADDRESS`` environment variable (one
+            address, or several separated by commas), else ``127.0.0.1:50051``.
         timeout: Default deadline in seconds of each unary call (``None``: no deadline);
             each method's ``timeout=`` overrides it for one call. Not applied to
             ``Shape`` streams (sessions).
@@ -434,7 +477,7 @@ class Client(TaskCalls, Closing):
 
     def __init__(
         self,
-        target: str | None = None,
+        target: Targets | None = None,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         metadata: Sequence[tuple[str, str]] | None = None,
@@ -448,7 +491,9 @@ class Client(TaskCalls, Closing):
         api_key: str | None = None,
         resume_timeout_secs: float | None = DEFAULT_RESUME_TIMEOUT_SECS,
     ) -> None:
-        self.target = parse_target(target)
+        self.targets = parse_targets(target)
+        #: The first address (every address: :attr:`targets`).
+        self.target = self.targets[0]
         self.timeout = timeout
         connection: ConnectionOptions = {
             "metadata": tuple(metadata) if metadata else None,
@@ -465,7 +510,7 @@ class Client(TaskCalls, Closing):
         self._connection = connection
         self._transport: _native.Channel
         try:
-            self._transport = _native.Channel(self.target, _channel_options(connection))
+            self._transport = _native.Channel(list(self.targets), _channel_options(connection))
         except _native.StatusError as exc:
             raise from_native(exc) from None
 
@@ -477,7 +522,7 @@ class Client(TaskCalls, Closing):
     def __reduce__(self) -> tuple[Any, ...]:
         # Pickled by address and settings: the copy (e.g. in a SubprocVecEnv or
         # AsyncVectorEnv worker) opens its own connection.
-        return (_rebuild_client, (self.target, self.timeout, self._connection))
+        return (_rebuild_client, (self.targets, self.timeout, self._connection))
 
     def __deepcopy__(self, memo: dict[int, object]) -> Client:
         # A handle on a connection, like the sessions: deep copies are the same client.
@@ -506,4 +551,5 @@ class Client(TaskCalls, Closing):
 
     def __repr__(self) -> str:
         tls = " tls" if self.tls else ""
-        return f"<tamrm.Client target={self.target!r}{tls}>"
+        where = f"target={self.target!r}" if len(self.targets) == 1 else f"targets={self.targets!r}"
+        return f"<tamrm.Client {where}{tls}>"

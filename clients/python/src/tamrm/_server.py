@@ -79,7 +79,7 @@ def health_check(
 
     try:
         options = _channel_options(connection or {})
-        return _native.Channel(target, options).health(service, timeout)
+        return _native.Channel([target], options).health(service, timeout)
     except (ValueError, TypeError, _native.StatusError):
         return False
 

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from tamrm._client import CLIENT_TIMEOUT, DEFAULT_TIMEOUT, ConnectionOptions, Timeout
+from tamrm._client import CLIENT_TIMEOUT, DEFAULT_TIMEOUT, ConnectionOptions, Targets, Timeout
 from tamrm._client import Client as _SyncClient
 from tamrm._closing import AsyncClosing
 from tamrm._errors import SessionClosed
@@ -179,8 +179,9 @@ class Client(AsyncClosing):
     """Asyncio client of a tamrm server; see :class:`tamrm.Client` for every method.
 
     Args:
-        target: The server address, ``host:port`` (default: ``$TAMRM_ADDRESS``, else
-            ``127.0.0.1:50051``); see :class:`tamrm.Client`.
+        target: The server address, ``host:port``, or a sequence of replicas' addresses
+            (default: ``$TAMRM_ADDRESS``, else ``127.0.0.1:50051``); see
+            :class:`tamrm.Client`.
         timeout: Default deadline in seconds of each unary call (``None``: no deadline);
             each method's ``timeout=`` overrides it for one call.
         **connection: How to connect, exactly as :class:`tamrm.Client`: ``metadata``,
@@ -191,13 +192,14 @@ class Client(AsyncClosing):
 
     def __init__(
         self,
-        target: str | None = None,
+        target: Targets | None = None,
         *,
         timeout: float | None = DEFAULT_TIMEOUT,
         **connection: Unpack[ConnectionOptions],
     ) -> None:
         self._sync = _SyncClient(target, timeout=timeout, **connection)
         self.target = self._sync.target
+        self.targets = self._sync.targets
         self.timeout = timeout
 
     @property
@@ -255,12 +257,13 @@ class Client(AsyncClosing):
         self._sync.close()
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_rebuild, (self.target, self.timeout, self._sync._connection))
+        return (_rebuild, (self.targets, self.timeout, self._sync._connection))
 
     def __repr__(self) -> str:
         tls = " tls" if self.tls else ""
-        return f"<tamrm.aio.Client target={self.target!r}{tls}>"
+        where = f"target={self.target!r}" if len(self.targets) == 1 else f"targets={self.targets!r}"
+        return f"<tamrm.aio.Client {where}{tls}>"
 
 
-def _rebuild(target: str, timeout: float | None, connection: ConnectionOptions) -> Client:
+def _rebuild(target: Targets, timeout: float | None, connection: ConnectionOptions) -> Client:
     return Client(target, timeout=timeout, **connection)
