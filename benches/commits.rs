@@ -13,12 +13,13 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tamrm::core::{ActionSeq, Pool, TaskConfig, TaskConfigInput};
-use tamrm::store::{Counters, DiskStore, PoolOp, Store};
+use tamrm::store::{DiskStore, Store};
+
+#[path = "common/commits.rs"]
+mod common;
+use common::{commit_episodes, config, EPISODE_LEN};
 
 const ROUNDS: usize = 5;
-/// Actions per stored episode.
-const EPISODE_LEN: u32 = 200;
 
 fn bench_dir() -> tempfile::TempDir {
     match std::env::var_os("TAMRM_BENCH_DIR") {
@@ -70,19 +71,6 @@ fn summarise(name: &str, streams: usize, rounds: Vec<Round>) -> Row {
     }
 }
 
-fn config() -> TaskConfig {
-    TaskConfig::resolve(&TaskConfigInput {
-        num_actions: 4,
-        pool_capacity: Some(1000),
-        ..Default::default()
-    })
-    .expect("valid config")
-}
-
-fn episode(i: u32) -> ActionSeq {
-    ActionSeq::Discrete((0..EPISODE_LEN).map(|j| (i + j) % 4).collect())
-}
-
 /// The group-commit store: `streams` tasks, each with its own committer, `per_stream`
 /// changes each (every offer scores higher than the last, so every commit changes the
 /// pool).
@@ -100,27 +88,12 @@ async fn new_path(streams: usize, per_stream: u32) -> Round {
     let t0 = Instant::now();
     let mut joins = Vec::new();
     for s in 0..streams {
-        let store = store.clone();
-        joins.push(tokio::spawn(async move {
-            let id = format!("t{s}");
-            let mut pool = Arc::new(Pool::new(1000));
-            let mut lat = Vec::with_capacity(per_stream as usize);
-            for i in 0..per_stream {
-                let ops = vec![PoolOp::Offer {
-                    actions: episode(i),
-                    score: f64::from(i),
-                    end: None,
-                }];
-                let t = Instant::now();
-                let c = store
-                    .commit(&id, pool, ops, Counters::default())
-                    .await
-                    .expect("commit");
-                lat.push(t.elapsed());
-                pool = c.pool;
-            }
-            lat
-        }));
+        let store: Arc<dyn Store> = Arc::new(store.clone());
+        joins.push(tokio::spawn(commit_episodes(
+            store,
+            format!("t{s}"),
+            per_stream,
+        )));
     }
     let mut latencies = Vec::new();
     for j in joins {

@@ -13,24 +13,12 @@ use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tamrm::core::{ActionSeq, Pool, TaskConfig, TaskConfigInput};
+use tamrm::core::Pool;
 use tamrm::store::{Counters, DiskStore, PoolOp, RedisOptions, RedisStore, Store};
 
-/// Actions per stored episode.
-const EPISODE_LEN: u32 = 200;
-
-fn config() -> TaskConfig {
-    TaskConfig::resolve(&TaskConfigInput {
-        num_actions: 4,
-        pool_capacity: Some(1000),
-        ..Default::default()
-    })
-    .expect("valid config")
-}
-
-fn episode(i: u32) -> ActionSeq {
-    ActionSeq::Discrete((0..EPISODE_LEN).map(|t| (t + i) % 4).collect())
-}
+#[path = "common/commits.rs"]
+mod common;
+use common::{commit_episodes, config, episode};
 
 fn tmp() -> tempfile::TempDir {
     match std::env::var_os("TAMRM_BENCH_DIR") {
@@ -105,31 +93,16 @@ async fn commits(store: Arc<dyn Store>, committers: usize, per: u32, tag: &str) 
     let t0 = Instant::now();
     let mut joins = Vec::new();
     for s in 0..committers {
-        let store = store.clone();
-        let id = format!("{tag}{s}");
-        joins.push(tokio::spawn(async move {
-            let mut pool = Arc::new(Pool::new(1000));
-            let mut lat = Vec::with_capacity(per as usize);
-            for i in 0..per {
-                let ops = vec![PoolOp::Offer {
-                    actions: episode(i),
-                    score: f64::from(i),
-                    end: None,
-                }];
-                let t = Instant::now();
-                let c = store
-                    .commit(&id, pool, ops, Counters::default())
-                    .await
-                    .expect("commit");
-                lat.push(t.elapsed().as_secs_f64() * 1e3);
-                pool = c.pool;
-            }
-            lat
-        }));
+        joins.push(tokio::spawn(commit_episodes(
+            store.clone(),
+            format!("{tag}{s}"),
+            per,
+        )));
     }
     let mut all = Vec::new();
     for j in joins {
-        all.extend(j.await.expect("committer"));
+        let lat = j.await.expect("committer");
+        all.extend(lat.iter().map(|d| d.as_secs_f64() * 1e3));
     }
     let rate = all.len() as f64 / t0.elapsed().as_secs_f64();
     (all, rate)
