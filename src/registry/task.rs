@@ -252,14 +252,14 @@ impl TaskHandle {
         Ok(())
     }
 
-    /// A task the store no longer has is deleted here too (another server deleted it).
+    /// A task the store no longer has is deleted here too (another server deleted it);
+    /// the error itself becomes `NOT_FOUND` in `From<StoreError> for Error`.
     fn gone_is_not_found<T>(&self, r: Result<T, StoreError>) -> Result<T, Error> {
-        r.map_err(|e| match e {
-            StoreError::Gone { .. } => {
+        r.map_err(|e| {
+            if matches!(e, StoreError::Gone { .. }) {
                 self.mark_deleted();
-                Error::not_found(self.id())
             }
-            e => e.into(),
+            e.into()
         })
     }
 
