@@ -3,7 +3,9 @@
 //! child on a free port, `appendfsync always` and `everysec`) and through `DiskStore`
 //! (group commit), with 1 and 8 committers; and the staleness of a second server's
 //! snapshot: the time from a commit's acknowledgement on store A to the change
-//! notification on store B (another connection, as another replica would have).
+//! notification on store B (another connection, as another replica would have). The
+//! same commits through a three-node Redis Cluster (`appendfsync always`; tasks spread
+//! over the nodes by their hash tags) show what sharding adds per commit and in total.
 //!
 //! `cargo bench --bench redis_store` (needs `redis-server` on the PATH); `--quick` for a
 //! short run. Data dirs go under `$TAMRM_BENCH_DIR` if set, else the system temp dir.
@@ -40,6 +42,10 @@ impl Redis {
             .and_then(|l| l.local_addr())
             .expect("free port")
             .port();
+        Redis::start_on(port, fsync, &[])
+    }
+
+    fn start_on(port: u16, fsync: &str, extra: &[&str]) -> Redis {
         let dir = tmp();
         let child = Command::new("redis-server")
             .args([
@@ -51,6 +57,7 @@ impl Redis {
                 "",
             ])
             .args(["--appendonly", "yes", "--appendfsync", fsync])
+            .args(extra)
             .arg("--dir")
             .arg(dir.path())
             .stdout(Stdio::null())
@@ -67,6 +74,53 @@ impl Redis {
             port,
             _dir: dir,
         }
+    }
+
+    /// Three primaries formed into a cluster by `redis-cli --cluster create`; the URL.
+    fn cluster(fsync: &str) -> (Vec<Redis>, String) {
+        let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
+        let extra = [
+            "--cluster-enabled",
+            "yes",
+            "--cluster-config-file",
+            "nodes.conf",
+        ];
+        let mut nodes = Vec::new();
+        let mut port = 21000 + (std::process::id() % 500) as u16 * 40;
+        while nodes.len() < 3 {
+            port += 1;
+            if free(port) && free(port + 10000) {
+                nodes.push(Redis::start_on(port, fsync, &extra));
+            }
+        }
+        let addrs: Vec<String> = nodes
+            .iter()
+            .map(|r| format!("127.0.0.1:{}", r.port))
+            .collect();
+        let ok = Command::new("redis-cli")
+            .args(["--cluster", "create"])
+            .args(&addrs)
+            .args(["--cluster-replicas", "0", "--cluster-yes"])
+            .stdout(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "redis-cli --cluster create failed");
+        let deadline = Instant::now() + Duration::from_secs(30);
+        for r in &nodes {
+            loop {
+                let info = Command::new("redis-cli")
+                    .args(["-p", &r.port.to_string(), "cluster", "info"])
+                    .output()
+                    .expect("redis-cli");
+                if String::from_utf8_lossy(&info.stdout).contains("cluster_state:ok") {
+                    break;
+                }
+                assert!(Instant::now() < deadline, "the cluster did not come up");
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        let url = format!("redis-cluster://{}", addrs.join(","));
+        (nodes, url)
     }
 
     fn url(&self) -> String {
@@ -173,6 +227,8 @@ fn main() {
             Arc::new(RedisStore::open(&o).await.expect("connect to redis"))
         };
         let (ra, re) = (open(always.url()).await, open(everysec.url()).await);
+        let (_nodes, cluster_url) = Redis::cluster("always");
+        let rc = open(cluster_url).await;
         let dir = tmp();
         let disk = Arc::new(DiskStore::open(dir.path()).expect("open data dir"));
         disk.load().await.expect("load");
@@ -184,9 +240,11 @@ fn main() {
             let d = commits(disk.clone(), committers, per, &tag).await;
             let a = commits(ra.clone(), committers, per, &tag).await;
             let e = commits(re.clone(), committers, per, &tag).await;
+            let c = commits(rc.clone(), committers, per, &tag).await;
             row("disk (group commit, fdatasync)", committers, d);
             row("Redis, appendfsync always", committers, a);
             row("Redis, appendfsync everysec", committers, e);
+            row("Redis Cluster (3 primaries), appendfsync always", committers, c);
         }
         let b = open(always.url()).await;
         let mut s = staleness(&ra, &b, if quick { 50 } else { 500 }).await;

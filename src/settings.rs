@@ -107,7 +107,9 @@ pub struct ServeArgs {
     #[arg(long, env = "TAMRM_PORT_FILE", value_name = "FILE")]
     pub port_file: Option<PathBuf>,
     /// Keep tasks and pools in Redis, shared with every server given the same URL:
-    /// `redis://[[USER]:PASSWORD@]HOST:PORT[/DB]` (see docs/scaling.md). Excludes --data-dir.
+    /// `redis://[[USER]:PASSWORD@]HOST:PORT[/DB]`, or a Redis Cluster by its seed nodes:
+    /// `redis-cluster://[[USER]:PASSWORD@]HOST:PORT[,HOST:PORT...]` (see docs/scaling.md).
+    /// Excludes --data-dir.
     #[arg(long, env = "TAMRM_STORE", value_name = "URL")]
     pub store: Option<String>,
     /// With --store: how often every task's pool version is polled, in milliseconds, as
@@ -146,7 +148,7 @@ pub struct FileSettings {
     pub data_dir: Option<PathBuf>,
     /// Port file.
     pub port_file: Option<PathBuf>,
-    /// Shared store URL (`redis://...`).
+    /// Shared store URL (`redis://...` or `redis-cluster://...`).
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: Option<u64>,
@@ -172,7 +174,7 @@ pub struct Settings {
     pub data_dir: Option<PathBuf>,
     /// Where to write the bound address.
     pub port_file: Option<PathBuf>,
-    /// A store shared with other servers (`redis://...`), or `None`.
+    /// A store shared with other servers (`redis://...` or `redis-cluster://...`), or `None`.
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: u64,
@@ -226,17 +228,8 @@ impl Settings {
                     "store and data_dir exclude each other: tasks live either in Redis (--store) or in a data dir (--data-dir)".into(),
                 ));
             }
-            if url.starts_with("rediss://") {
-                return Err(SettingsError(
-                    "store: rediss:// (TLS to Redis) is not supported by this build; use redis:// on a private network or through a TLS tunnel (docs/scaling.md)".into(),
-                ));
-            }
-            if !url.starts_with("redis://") {
-                return Err(SettingsError(format!(
-                    "store: expected a redis:// URL, got {:?}",
-                    url.split('@').next_back().unwrap_or(url)
-                )));
-            }
+            crate::store::RedisTarget::parse(url)
+                .map_err(|e| SettingsError(format!("store: {e}")))?;
         }
         if s.store_poll_ms == 0 {
             return Err(SettingsError("store_poll_ms must be at least 1".into()));
@@ -366,6 +359,16 @@ mod tests {
         let bad = err(&["--store", "http://:secret@h:1"]);
         assert!(bad.contains("redis://") && !bad.contains("secret"), "{bad}");
         assert!(err(&["--store", "redis://h:1", "--store-poll-ms", "0"]).contains("store_poll_ms"));
+        let cluster = "redis-cluster://:pw@a:7000,b:7001";
+        let s = Settings::resolve(&parse(&["--store", cluster])).unwrap();
+        assert_eq!(s.store.as_deref(), Some(cluster));
+        assert!(err(&["--store", "rediss-cluster://a:1"]).contains("not supported"));
+        let bad = err(&["--store", "redis-cluster://:secret@a:7000,b"]);
+        assert!(
+            bad.contains("HOST:PORT") && !bad.contains("secret"),
+            "{bad}"
+        );
+        assert!(err(&["--store", "redis-cluster://a:7000/1"]).contains("database 0"));
     }
 
     #[test]

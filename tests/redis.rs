@@ -1,22 +1,23 @@
 //! Many servers, one pool (SPEC §10) and resume across them (§9), against a real
-//! `redis-server` started by the tests on a free port: replicas are real servers on
-//! 127.0.0.1:0 (in-process, or the real binary where a test kills one with -9).
+//! `redis-server` started by the tests on a free port, and against a real three-node
+//! Redis Cluster: replicas are real servers on 127.0.0.1:0 (in-process, or the real
+//! binary where a test kills one with -9).
 
 mod common;
 
 use std::time::{Duration, Instant};
 
 use common::{
-    batch, connect, create, discrete, dtraj, get_pool, get_task, Binary, Client, RedisServer,
-    Stream,
+    batch, connect, create, discrete, dtraj, get_pool, get_task, Binary, Client, RedisCluster,
+    RedisServer, Stream,
 };
 use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
 use tamrm::server::RunningServer;
 use tonic::Code;
 
-/// A replica of the shared store: an in-process server using `redis`.
-async fn replica(redis: &RedisServer) -> RunningServer {
-    let url = redis.url();
+/// A replica of the shared store: an in-process server using the store at `url`.
+async fn replica(url: &str) -> RunningServer {
+    let url = url.to_string();
     common::start_server(None, move |s| {
         s.store = Some(url);
         s.store_poll_ms = 200;
@@ -71,7 +72,17 @@ where
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stream_through_a_replica_gets_exactly_the_rewards_of_a_lone_server() {
     let redis = RedisServer::start();
-    let shared = replica(&redis).await;
+    stream_through_a_replica(&redis.url()).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_through_a_cluster_replica_gets_exactly_the_rewards_of_a_lone_server() {
+    let cluster = RedisCluster::start(3);
+    stream_through_a_replica(&cluster.url()).await;
+}
+
+async fn stream_through_a_replica(url: &str) {
+    let shared = replica(url).await;
     let alone = common::start_server(None, |_| {}).await;
     let (mut r, mut m) = (connect(shared.addr()).await, connect(alone.addr()).await);
     for c in [&mut r, &mut m] {
@@ -93,7 +104,17 @@ async fn a_stream_through_a_replica_gets_exactly_the_rewards_of_a_lone_server() 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_replicas_lose_no_update_and_count_each_change_once() {
     let redis = RedisServer::start();
-    let (a, b) = (replica(&redis).await, replica(&redis).await);
+    two_replicas_lose_no_update(&redis.url()).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_replicas_on_a_cluster_lose_no_update_and_count_each_change_once() {
+    let cluster = RedisCluster::start(3);
+    two_replicas_lose_no_update(&cluster.url()).await;
+}
+
+async fn two_replicas_lose_no_update(url: &str) {
+    let (a, b) = (replica(url).await, replica(url).await);
     let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
     create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
     // Concurrent offers through both replicas to a small pool: every stored offer got a
@@ -169,7 +190,17 @@ async fn two_replicas_lose_no_update_and_count_each_change_once() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_task_created_on_one_replica_is_usable_at_once_on_another() {
     let redis = RedisServer::start();
-    let (a, b) = (replica(&redis).await, replica(&redis).await);
+    created_on_one_usable_on_another(&redis.url()).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_task_created_on_one_cluster_replica_is_usable_at_once_on_another() {
+    let cluster = RedisCluster::start(3);
+    created_on_one_usable_on_another(&cluster.url()).await;
+}
+
+async fn created_on_one_usable_on_another(url: &str) {
+    let (a, b) = (replica(url).await, replica(url).await);
     let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
     create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
     assert_eq!(get_task(&mut cb, "t").await.task_id, "t");
@@ -328,7 +359,7 @@ async fn after_kill_9_of_its_replica_a_client_resumes_on_another_with_the_same_r
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nothing_acknowledged_is_lost_when_redis_is_killed() {
     let mut redis = RedisServer::start();
-    let r = replica(&redis).await;
+    let r = replica(&redis.url()).await;
     let mut c = connect(r.addr()).await;
     create(&mut c, "t", discrete(3, 4, 2, 1, 2)).await;
     for i in 0..12u32 {
@@ -352,7 +383,7 @@ async fn nothing_acknowledged_is_lost_when_redis_is_killed() {
     );
     redis.restart();
     // A new replica finds every acknowledged change.
-    let fresh = replica(&redis).await;
+    let fresh = replica(&redis.url()).await;
     let mut f = connect(fresh.addr()).await;
     assert_eq!(get_pool(&mut f, "t").await, before);
     // The old one reconnects by itself.
@@ -378,4 +409,109 @@ async fn nothing_acknowledged_is_lost_when_redis_is_killed() {
         get_pool(&mut c, "t").await.pool_version,
         before.pool_version + 1
     );
+}
+
+/// Adds an offer of `score`; whether the call succeeded.
+async fn try_add(c: &mut Client, id: &str, score: f64) -> Result<u64, tonic::Status> {
+    c.add_trajectory(proto::AddTrajectoryRequest {
+        task_id: id.into(),
+        trajectory: Some(dtraj(&[1, 2], score)),
+    })
+    .await
+    .map(|r| r.into_inner().pool_version)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cluster_spreads_tasks_and_loses_nothing_acknowledged_when_a_node_is_killed() {
+    let mut cluster = RedisCluster::start(3);
+    let url = cluster.url();
+    let r = replica(&url).await;
+    let mut c = connect(r.addr()).await;
+    let ids: Vec<String> = (0..9).map(|i| format!("task-{i}")).collect();
+    for (i, id) in ids.iter().enumerate() {
+        create(&mut c, id, discrete(3, 4, 2, 1, 2)).await;
+        for j in 0..6u32 {
+            common::add(
+                &mut c,
+                id,
+                dtraj(&[j % 3, 1], f64::from((j + i as u32) % 5)),
+            )
+            .await;
+        }
+    }
+    run(&mut c, "task-0", &script(5, 60)).await;
+    // Every key of a task is in its slot; the tasks spread over all three nodes.
+    let home: Vec<usize> = ids
+        .iter()
+        .map(|id| cluster.node_of(&format!("tamrm:{{{id}}}:meta")))
+        .collect();
+    for n in 0..3 {
+        assert!(home.contains(&n), "node {n} holds no task: {home:?}");
+        let keys = cluster.nodes[n].cli(&["--scan", "--pattern", "tamrm:{*"]);
+        for key in keys.lines() {
+            let id = key.split(['{', '}']).nth(1).unwrap();
+            let i = ids.iter().position(|t| t == id).unwrap();
+            assert_eq!(home[i], n, "{key} is on node {n}");
+        }
+    }
+    let mut before = Vec::new();
+    for id in &ids {
+        before.push(get_pool(&mut c, id).await);
+    }
+    let victim = home[0];
+    let (down, up) = (
+        &ids[home.iter().position(|&h| h == victim).unwrap()],
+        &ids[home.iter().position(|&h| h != victim).unwrap()],
+    );
+    cluster.nodes[victim].kill();
+    // A task on the dead node cannot change; one on a live node still can.
+    let c2 = c.clone();
+    let down2 = down.clone();
+    eventually(
+        "a commit to a task on the dead node fails UNAVAILABLE",
+        || {
+            let mut c = c2.clone();
+            let id = down2.clone();
+            async move {
+                try_add(&mut c, &id, 100.0)
+                    .await
+                    .is_err_and(|e| e.code() == Code::Unavailable)
+            }
+        },
+    )
+    .await;
+    let up_index = ids.iter().position(|t| t == up).unwrap();
+    let c2 = c.clone();
+    let up2 = up.clone();
+    eventually("a task on a live node takes commits", || {
+        let mut c = c2.clone();
+        let id = up2.clone();
+        async move { try_add(&mut c, &id, 100.0).await.is_ok() }
+    })
+    .await;
+    before[up_index] = get_pool(&mut c, up).await;
+    cluster.nodes[victim].restart();
+    cluster.wait_up();
+    // A fresh replica finds every acknowledged change of every task.
+    let fresh = replica(&url).await;
+    let mut f = connect(fresh.addr()).await;
+    for (id, pool) in ids.iter().zip(&before) {
+        let down_index = ids.iter().position(|t| t == down).unwrap();
+        let got = get_pool(&mut f, id).await;
+        if id == down {
+            // A commit that failed while the node was down changed nothing.
+            assert_eq!(got, before[down_index], "{id}");
+        } else {
+            assert_eq!(&got, pool, "{id}");
+        }
+    }
+    // The old replica commits to the restarted node again by itself.
+    let c2 = c.clone();
+    let down2 = down.clone();
+    eventually("the replica commits to the restarted node", || {
+        let mut c = c2.clone();
+        let id = down2.clone();
+        async move { try_add(&mut c, &id, 100.0).await.is_ok() }
+    })
+    .await;
 }

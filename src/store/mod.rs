@@ -32,7 +32,7 @@ use crate::core::{ActionSeq, Pool, TaskConfig};
 
 pub use disk::{DiskStore, FORMAT_VERSION};
 pub use memory::MemoryStore;
-pub use redis::{RedisOptions, RedisStore};
+pub use redis::{RedisOptions, RedisStore, RedisTarget};
 
 /// Per-task counters kept alongside the pool (persisted with every pool change and at
 /// graceful shutdown; a crash may lose the increments since the last write).

@@ -20,6 +20,12 @@
 //! pool in Redis, the version bump, the counters, the end record and a `PUBLISH` on
 //! `tamrm:changes`. Every server subscribes, and also polls the versions every
 //! `poll_interval` as a backstop for notifications lost while disconnected.
+//!
+//! Redis Cluster (`redis-cluster://`): every script and every atomic read touches the keys
+//! of one task only, so each runs on the node holding the task's slot; tasks spread over
+//! the nodes by their hash tags. `tamrm:tasks` lives in the slot of its own name. Changes
+//! are published with the classic `PUBLISH`, which a cluster delivers on every node, so a
+//! server subscribes on any one node (the next seed node when that one fails).
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -27,8 +33,9 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use dashmap::DashMap;
 use futures::StreamExt;
-use redis::aio::ConnectionManager;
-use redis::{AsyncCommands, Script};
+use redis::aio::{ConnectionLike, ConnectionManager};
+use redis::cluster_async::ClusterConnection;
+use redis::{AsyncCommands, Cmd, Pipeline, RedisFuture, Script, Value};
 use serde::{Deserialize, Serialize};
 use tokio::sync::broadcast;
 
@@ -43,10 +50,106 @@ const CHANNEL: &str = "tamrm:changes";
 /// Version of the task's JSON config in Redis.
 const CONFIG_FORMAT: u32 = 1;
 
+/// Where the store's Redis is, parsed from its URL (the one place that knows the URL
+/// forms; settings check a URL with [`RedisTarget::parse`] too).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum RedisTarget {
+    /// `redis://[[user]:password@]host:port[/db]`: one Redis (or Valkey) server.
+    Node(String),
+    /// `redis-cluster://[[user]:password@]host:port[,host:port...]`: the seed nodes of a
+    /// Redis Cluster, each as a `redis://` URL with the credentials.
+    Cluster(Vec<String>),
+}
+
+impl RedisTarget {
+    /// Parses a store URL; errors name the problem and never show a password.
+    pub fn parse(url: &str) -> Result<RedisTarget, String> {
+        if url.starts_with("rediss://") || url.starts_with("rediss-cluster://") {
+            return Err(
+                "TLS to Redis (rediss://) is not supported by this build; use redis:// or redis-cluster:// on a private network or through a TLS tunnel (docs/scaling.md)".into(),
+            );
+        }
+        if let Some(rest) = url.strip_prefix("redis://") {
+            if rest.is_empty() || rest.starts_with('/') {
+                return Err("redis:// needs a host: redis://HOST:PORT[/DB]".into());
+            }
+            return Ok(RedisTarget::Node(url.to_string()));
+        }
+        let Some(rest) = url.strip_prefix("redis-cluster://") else {
+            return Err(format!(
+                "expected a redis:// or redis-cluster:// URL, got {:?}",
+                redact(url)
+            ));
+        };
+        let (credentials, hosts) = match rest.rfind('@') {
+            Some(at) => rest.split_at(at + 1),
+            None => ("", rest),
+        };
+        let hosts = hosts.strip_suffix('/').unwrap_or(hosts);
+        if hosts.contains('/') || hosts.contains('?') {
+            return Err(
+                "redis-cluster:// takes HOST:PORT[,HOST:PORT...] only: a Redis Cluster has database 0 only and no options here".into(),
+            );
+        }
+        let nodes = hosts
+            .split(',')
+            .map(|node| {
+                let port = node.rsplit_once(':').map(|(host, port)| (host, port.parse::<u16>()));
+                match port {
+                    Some((host, Ok(_))) if !host.is_empty() => {
+                        Ok(format!("redis://{credentials}{node}"))
+                    }
+                    _ => Err(format!(
+                        "redis-cluster://: {node:?} is not HOST:PORT (give every seed node with its port, separated by commas)"
+                    )),
+                }
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(RedisTarget::Cluster(nodes))
+    }
+}
+
+/// A connection to one server or to a cluster; both multiplex requests and reconnect by
+/// themselves.
+#[derive(Clone)]
+enum Conn {
+    Node(ConnectionManager),
+    Cluster(ClusterConnection),
+}
+
+impl ConnectionLike for Conn {
+    fn req_packed_command<'a>(&'a mut self, cmd: &'a Cmd) -> RedisFuture<'a, Value> {
+        match self {
+            Conn::Node(c) => c.req_packed_command(cmd),
+            Conn::Cluster(c) => c.req_packed_command(cmd),
+        }
+    }
+
+    fn req_packed_commands<'a>(
+        &'a mut self,
+        pipeline: &'a Pipeline,
+        offset: usize,
+        count: usize,
+    ) -> RedisFuture<'a, Vec<Value>> {
+        match self {
+            Conn::Node(c) => c.req_packed_commands(pipeline, offset, count),
+            Conn::Cluster(c) => c.req_packed_commands(pipeline, offset, count),
+        }
+    }
+
+    fn get_db(&self) -> i64 {
+        match self {
+            Conn::Node(c) => c.get_db(),
+            Conn::Cluster(c) => c.get_db(),
+        }
+    }
+}
+
 /// How to reach Redis and how fresh snapshots are kept.
 #[derive(Debug, Clone)]
 pub struct RedisOptions {
-    /// `redis://[user:password@]host:port[/db]` (or `rediss://` for TLS).
+    /// `redis://[[user]:password@]host:port[/db]`, or
+    /// `redis-cluster://[[user]:password@]host:port[,host:port...]` (see [`RedisTarget`]).
     pub url: String,
     /// Every server reads every task's version this often, as a backstop for lost
     /// notifications: the bound on how stale a snapshot can be while notifications are
@@ -203,7 +306,7 @@ struct Held {
 /// Task configs and pools in Redis; see the module documentation.
 pub struct RedisStore {
     what: String,
-    conn: ConnectionManager,
+    conn: Conn,
     create: Script,
     delete: Script,
     commit: Script,
@@ -237,26 +340,51 @@ impl RedisStore {
     /// Connects (failing if Redis does not answer) and starts following changes.
     pub async fn open(options: &RedisOptions) -> Result<RedisStore, StoreError> {
         let what = format!("redis {}", redact(&options.url));
-        let client = redis::Client::open(options.url.as_str()).map_err(|e| StoreError::Io {
+        let bad_url = |message: String| StoreError::Io {
             path: what.clone().into(),
-            message: format!("not a Redis URL: {e}"),
-        })?;
-        let config = redis::aio::ConnectionManagerConfig::new()
-            .set_connection_timeout(Some(Duration::from_secs(5)))
-            .set_response_timeout(Some(Duration::from_secs(10)))
-            .set_max_delay(Duration::from_secs(2));
-        let mut conn = client
-            .get_connection_manager_with_config(config)
-            .await
-            .map_err(|e| unavailable(&what, "connecting", e))?;
-        let _: String = redis::cmd("PING")
+            message,
+        };
+        let open_client = |url: &str| {
+            redis::Client::open(url).map_err(|e| bad_url(format!("not a Redis URL: {e}")))
+        };
+        let (connect, timeout) = (Duration::from_secs(5), Duration::from_secs(10));
+        let (mut conn, subscribers) = match RedisTarget::parse(&options.url).map_err(bad_url)? {
+            RedisTarget::Node(url) => {
+                let client = open_client(&url)?;
+                let config = redis::aio::ConnectionManagerConfig::new()
+                    .set_connection_timeout(Some(connect))
+                    .set_response_timeout(Some(timeout))
+                    .set_max_delay(Duration::from_secs(2));
+                let conn = client
+                    .get_connection_manager_with_config(config)
+                    .await
+                    .map_err(|e| unavailable(&what, "connecting", e))?;
+                (Conn::Node(conn), vec![client])
+            }
+            RedisTarget::Cluster(nodes) => {
+                let conn = redis::cluster::ClusterClientBuilder::new(nodes.clone())
+                    .connection_timeout(connect)
+                    .response_timeout(timeout)
+                    .build()
+                    .map_err(|e| bad_url(format!("not a Redis Cluster URL: {e}")))?
+                    .get_async_connection()
+                    .await
+                    .map_err(|e| unavailable(&what, "connecting", e))?;
+                let subscribers = nodes
+                    .iter()
+                    .map(|n| open_client(n))
+                    .collect::<Result<Vec<_>, _>>()?;
+                (Conn::Cluster(conn), subscribers)
+            }
+        };
+        let _: Value = redis::cmd("PING")
             .query_async(&mut conn)
             .await
             .map_err(|e| unavailable(&what, "connecting", e))?;
         let (tx, _) = broadcast::channel(1024);
         let held = Arc::new(DashMap::new());
         let watcher = tokio::spawn(watch(
-            client,
+            subscribers,
             conn.clone(),
             held.clone(),
             tx.clone(),
@@ -408,7 +536,22 @@ fn score_text(score: f64) -> String {
 
 fn unavailable(what: &str, doing: &str, e: redis::RedisError) -> StoreError {
     let message = e.to_string();
-    if e.is_io_error() || e.is_connection_refusal() || e.is_timeout() || e.is_connection_dropped() {
+    let down = matches!(
+        e.kind(),
+        redis::ErrorKind::ClusterConnectionNotFound
+            | redis::ErrorKind::Server(
+                redis::ServerErrorKind::ClusterDown
+                    | redis::ServerErrorKind::TryAgain
+                    | redis::ServerErrorKind::MasterDown
+                    | redis::ServerErrorKind::BusyLoading
+            )
+    );
+    if down
+        || e.is_io_error()
+        || e.is_connection_refusal()
+        || e.is_timeout()
+        || e.is_connection_dropped()
+    {
         StoreError::Unavailable {
             what: format!("{what} ({doing})"),
             message,
@@ -673,21 +816,23 @@ impl Store for RedisStore {
     }
 }
 
-/// Follows `tamrm:changes` and polls every held task's version each `poll`, announcing
-/// on `tx` every newer version and every deletion of a held incarnation.
+/// Follows `tamrm:changes` (subscribed on one of `subscribers`, the next one when it
+/// fails) and polls every held task's version each `poll`, announcing on `tx` every newer
+/// version and every deletion of a held incarnation.
 async fn watch(
-    client: redis::Client,
-    mut conn: ConnectionManager,
+    subscribers: Vec<redis::Client>,
+    mut conn: Conn,
     held: Arc<DashMap<String, Held>>,
     tx: broadcast::Sender<PoolChanged>,
     poll: Duration,
 ) {
     let mut messages = None;
+    let mut next = 0;
     let mut tick = tokio::time::interval(poll);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         if messages.is_none() {
-            messages = subscribe(&client).await;
+            messages = subscribe(&subscribers, &mut next).await;
         }
         let message = async {
             match messages.as_mut() {
@@ -705,21 +850,33 @@ async fn watch(
                     tracing::warn!(error = %e, "could not poll pool versions in Redis");
                 }
                 if messages.is_none() {
-                    messages = subscribe(&client).await;
+                    messages = subscribe(&subscribers, &mut next).await;
                 }
             }
         }
     }
 }
 
-async fn subscribe(client: &redis::Client) -> Option<redis::aio::PubSubStream> {
-    let mut pubsub = client
-        .get_async_pubsub()
-        .await
-        .map_err(|e| tracing::warn!(error = %e, "could not subscribe to Redis notifications"))
-        .ok()?;
-    pubsub.subscribe(CHANNEL).await.ok()?;
-    Some(pubsub.into_on_message())
+/// Subscribes on `subscribers[*next]`, moving `next` on to the following one if that
+/// fails (a cluster delivers every `PUBLISH` on every node).
+async fn subscribe(
+    subscribers: &[redis::Client],
+    next: &mut usize,
+) -> Option<redis::aio::PubSubStream> {
+    let client = subscribers.get(*next % subscribers.len().max(1))?;
+    let subscribed = async {
+        let mut pubsub = client.get_async_pubsub().await?;
+        pubsub.subscribe(CHANNEL).await?;
+        Ok::<_, redis::RedisError>(pubsub.into_on_message())
+    };
+    match subscribed.await {
+        Ok(stream) => Some(stream),
+        Err(e) => {
+            tracing::warn!(error = %e, "could not subscribe to Redis notifications");
+            *next = next.wrapping_add(1);
+            None
+        }
+    }
 }
 
 /// Parses `<version|deleted> <incarnation> <task>` and announces it if it concerns a held
@@ -760,9 +917,11 @@ fn deleted(task: &str) -> PoolChanged {
     }
 }
 
-/// One round trip for the versions and incarnations of every held task.
+/// The versions and incarnations of every held task, requested all at once (one round
+/// trip on one server; one per node holding them on a cluster, where a pipeline cannot
+/// span slots).
 async fn poll_versions(
-    conn: &mut ConnectionManager,
+    conn: &mut Conn,
     held: &DashMap<String, Held>,
     tx: &broadcast::Sender<PoolChanged>,
 ) -> Result<(), redis::RedisError> {
@@ -770,19 +929,20 @@ async fn poll_versions(
         .iter()
         .map(|h| (h.key().clone(), h.incarnation.clone()))
         .collect();
-    if tasks.is_empty() {
-        return Ok(());
-    }
-    let mut pipe = redis::pipe();
-    for (task, _) in &tasks {
-        pipe.cmd("HMGET")
-            .arg(Keys::of(task).meta)
-            .arg("version")
-            .arg("incarnation");
-    }
-    let rows: Vec<(Option<u64>, Option<String>)> = pipe.query_async(conn).await?;
-    for ((task, ours), (version, incarnation)) in tasks.iter().zip(rows) {
-        match (version, incarnation) {
+    let rows = futures::future::join_all(tasks.iter().map(|(task, _)| {
+        let mut conn = conn.clone();
+        async move {
+            redis::cmd("HMGET")
+                .arg(Keys::of(task).meta)
+                .arg("version")
+                .arg("incarnation")
+                .query_async::<(Option<u64>, Option<String>)>(&mut conn)
+                .await
+        }
+    }))
+    .await;
+    for ((task, ours), row) in tasks.iter().zip(rows) {
+        match row? {
             (Some(version), Some(inc)) if &inc == ours => {
                 let _ = tx.send(PoolChanged {
                     task: task.clone(),
@@ -807,6 +967,40 @@ mod tests {
     fn passwords_are_not_shown() {
         assert_eq!(redact("redis://:s3cret@h:6379/0"), "redis://***@h:6379/0");
         assert_eq!(redact("redis://h:6379"), "redis://h:6379");
+    }
+
+    #[test]
+    fn store_urls_name_one_server_or_the_seed_nodes_of_a_cluster() {
+        assert_eq!(
+            RedisTarget::parse("redis://:pw@h:6379/2"),
+            Ok(RedisTarget::Node("redis://:pw@h:6379/2".into()))
+        );
+        assert_eq!(
+            RedisTarget::parse("redis-cluster://u:pw@a:7000,b:7001/"),
+            Ok(RedisTarget::Cluster(vec![
+                "redis://u:pw@a:7000".into(),
+                "redis://u:pw@b:7001".into()
+            ]))
+        );
+        assert_eq!(
+            RedisTarget::parse("redis-cluster://[::1]:7000"),
+            Ok(RedisTarget::Cluster(vec!["redis://[::1]:7000".into()]))
+        );
+        for bad in [
+            "redis://",
+            "redis-cluster://",
+            "redis-cluster://a:7000,,b:7001",
+            "redis-cluster://a",
+            "redis-cluster://a:port",
+            "redis-cluster://:7000",
+            "redis-cluster://a:7000/3",
+            "redis-cluster://a:7000?x=1",
+            "rediss://h:1",
+            "http://:pw@h:1",
+        ] {
+            let e = RedisTarget::parse(bad).unwrap_err();
+            assert!(!e.contains("pw"), "{bad}: {e}");
+        }
     }
 
     #[test]

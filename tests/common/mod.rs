@@ -299,6 +299,7 @@ pub struct RedisServer {
     child: Option<Child>,
     pub port: u16,
     pub dir: tempfile::TempDir,
+    extra: Vec<String>,
 }
 
 impl RedisServer {
@@ -309,10 +310,15 @@ impl RedisServer {
             .local_addr()
             .unwrap()
             .port();
+        RedisServer::start_with(port, Vec::new())
+    }
+
+    fn start_with(port: u16, extra: Vec<String>) -> RedisServer {
         let mut r = RedisServer {
             child: None,
             port,
             dir: tempfile::tempdir().unwrap(),
+            extra,
         };
         r.spawn();
         r
@@ -336,6 +342,7 @@ impl RedisServer {
                 "--save",
                 "",
             ])
+            .args(&self.extra)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -359,6 +366,16 @@ impl RedisServer {
                 .is_ok_and(|n| buf[..n].starts_with(b"+PONG"))
     }
 
+    /// The answer of `redis-cli` to `args` on this server.
+    pub fn cli(&self, args: &[&str]) -> String {
+        let out = Command::new("redis-cli")
+            .args(["-h", "127.0.0.1", "-p", &self.port.to_string()])
+            .args(args)
+            .output()
+            .expect("redis-cli is needed by these tests: apt-get install -y redis-server");
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+
     /// kill -9.
     pub fn kill(&mut self) {
         if let Some(mut c) = self.child.take() {
@@ -371,6 +388,122 @@ impl RedisServer {
     pub fn restart(&mut self) {
         self.kill();
         self.spawn();
+    }
+}
+
+/// A Redis Cluster of `redis-server` children (primaries only), formed with
+/// `redis-cli --cluster create`: slots 0-16383 split evenly in node order.
+pub struct RedisCluster {
+    pub nodes: Vec<RedisServer>,
+}
+
+impl RedisCluster {
+    /// Starts `n` nodes on free ports (each with its cluster bus port, +10000, free too)
+    /// and waits for the cluster to be up. Nodes keep serving the slots they hold when
+    /// another is down (`cluster-require-full-coverage no`).
+    pub fn start(n: usize) -> RedisCluster {
+        use std::sync::atomic::{AtomicU32, Ordering};
+        // Tests of one process run in parallel: each candidate port is tried once.
+        static TRIED: AtomicU32 = AtomicU32::new(0);
+        let free = |p: u16| std::net::TcpListener::bind(("127.0.0.1", p)).is_ok();
+        let offset = (std::process::id() % 1000) * 20;
+        let mut nodes = Vec::new();
+        while nodes.len() < n {
+            let tried = TRIED.fetch_add(1, Ordering::Relaxed);
+            let port = u16::try_from(20000 + (offset + tried) % 30000).expect("below 50000");
+            if !(free(port) && free(port + 10000)) {
+                continue;
+            }
+            let extra = [
+                "--cluster-enabled",
+                "yes",
+                "--cluster-config-file",
+                "nodes.conf",
+                "--cluster-node-timeout",
+                "1000",
+                "--cluster-require-full-coverage",
+                "no",
+            ];
+            nodes.push(RedisServer::start_with(
+                port,
+                extra.iter().map(|s| s.to_string()).collect(),
+            ));
+        }
+        let addrs: Vec<String> = nodes
+            .iter()
+            .map(|r| format!("127.0.0.1:{}", r.port))
+            .collect();
+        let out = Command::new("redis-cli")
+            .args(["--cluster", "create"])
+            .args(&addrs)
+            .args(["--cluster-replicas", "0", "--cluster-yes"])
+            .output()
+            .expect("redis-cli is needed by these tests: apt-get install -y redis-server");
+        assert!(
+            out.status.success(),
+            "redis-cli --cluster create: {}",
+            String::from_utf8_lossy(&out.stdout)
+        );
+        let c = RedisCluster { nodes };
+        c.wait_up();
+        c
+    }
+
+    /// Waits until every node reports `cluster_state:ok`.
+    pub fn wait_up(&self) {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while !self
+            .nodes
+            .iter()
+            .all(|r| r.cli(&["cluster", "info"]).contains("cluster_state:ok"))
+        {
+            assert!(
+                Instant::now() < deadline,
+                "the Redis Cluster did not come up"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// `redis-cluster://` with every node as a seed.
+    pub fn url(&self) -> String {
+        let nodes: Vec<String> = self
+            .nodes
+            .iter()
+            .map(|r| format!("127.0.0.1:{}", r.port))
+            .collect();
+        format!("redis-cluster://{}", nodes.join(","))
+    }
+
+    /// The index of the node serving `key`'s slot, from `CLUSTER NODES`.
+    pub fn node_of(&self, key: &str) -> usize {
+        let up = self.nodes.iter().find(|r| r.pings()).expect("a node is up");
+        let slot: u32 = up
+            .cli(&["cluster", "keyslot", key])
+            .trim()
+            .parse()
+            .expect("a slot number");
+        for line in up.cli(&["cluster", "nodes"]).lines() {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let Some(port) = fields
+                .get(1)
+                .and_then(|a| a.split('@').next())
+                .and_then(|a| a.rsplit(':').next())
+                .and_then(|p| p.parse::<u16>().ok())
+            else {
+                continue;
+            };
+            let serves = fields.iter().skip(8).any(|range| {
+                let (a, b) = range.split_once('-').unwrap_or((range, range));
+                matches!((a.parse::<u32>(), b.parse::<u32>()), (Ok(a), Ok(b)) if a <= slot && slot <= b)
+            });
+            if serves {
+                if let Some(i) = self.nodes.iter().position(|r| r.port == port) {
+                    return i;
+                }
+            }
+        }
+        panic!("no node serves slot {slot}");
     }
 }
 
