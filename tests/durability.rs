@@ -626,6 +626,28 @@ async fn corrupt_or_truncated_state_is_refused_naming_the_file() {
     std::fs::write(&f, serde_json::to_vec(&v).unwrap()).unwrap();
     assert_refused(d.path(), &f, "duplicate seq in pool.json").await;
 
+    // A task.json that parses but holds a config out of SPEC §1.1's ranges (found by the
+    // `disk` fuzz target: `"k": 0` was used, and the first step panicked in the kNN
+    // selection). Each is refused naming the file.
+    for (field, value) in [
+        ("k", serde_json::json!(0)),
+        ("pool_capacity", serde_json::json!(0)),
+        ("min_pool_size", serde_json::json!(0)),
+        ("gamma", serde_json::json!(1.5)),
+        ("max_trajectory_len", serde_json::json!(0)),
+    ] {
+        let (d, task) = fresh();
+        let f = task.join("task.json");
+        let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&f).unwrap()).unwrap();
+        assert!(
+            v["config"].get(field).is_some(),
+            "task.json has config.{field}"
+        );
+        v["config"][field] = value;
+        std::fs::write(&f, serde_json::to_vec(&v).unwrap()).unwrap();
+        assert_refused(d.path(), &f, &format!("config.{field} out of range")).await;
+    }
+
     // Unsupported format numbers.
     for name in ["pool.json", "task.json"] {
         let (d, task) = fresh();

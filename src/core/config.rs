@@ -215,6 +215,21 @@ fn bad(field: &'static str, message: impl Into<String>) -> ConfigError {
 }
 
 impl TaskConfig {
+    /// Checks a resolved configuration read back from storage against every range of
+    /// SPEC §1.1, as [`TaskConfig::resolve`] checks a client's: stored data is never
+    /// trusted to satisfy what the engine relies on (e.g. `k >= 1`).
+    pub fn check(&self) -> Result<(), ConfigError> {
+        let again = TaskConfig::resolve(&self.to_input())?;
+        if again.same_as(self) {
+            Ok(())
+        } else {
+            Err(bad(
+                "config",
+                "does not resolve to itself (a field out of its range)",
+            ))
+        }
+    }
+
     /// Fills in defaults and checks every range of SPEC §1.1.
     pub fn resolve(input: &TaskConfigInput) -> Result<TaskConfig, ConfigError> {
         let action_space = match (input.num_actions, input.action_dim) {

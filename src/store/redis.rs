@@ -592,6 +592,9 @@ fn decode_task(
         ));
     }
     let config = json.config;
+    config
+        .check()
+        .map_err(|e| format!("field \"config\": config.{}: {}", e.field, e.message))?;
     let trajectories = traj
         .into_iter()
         .map(|(seq, bytes)| {

@@ -34,6 +34,9 @@ fn load_task(dir: &Path) -> Result<StoredTask, StoreError> {
     let task_path = dir.join("task.json");
     let task: TaskFile = read_json(&task_path)?;
     checked(&task_path, check_format(task.format))?;
+    task.config
+        .check()
+        .map_err(|e| err(&task_path, format!("config.{}: {}", e.field, e.message)))?;
     let pool_path = dir.join("pool.json");
     let pf: PoolFile = read_json(&pool_path)?;
     checked(&pool_path, check_format(pf.format))?;
