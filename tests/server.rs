@@ -1689,3 +1689,55 @@ async fn idle_and_never_opened_streams_are_closed() {
         busy.step(common::batch(&[0], &[0.0], &[])).await.unwrap();
     }
 }
+
+/// A client that sends and never reads its answers is held back (HTTP/2 flow control
+/// behind the server's bounded answer queue): its sends stop being taken after a bounded
+/// number of batches, and the server goes on serving other streams, of the same
+/// connection too.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_never_reads_is_held_back_not_buffered() {
+    use prost::Message;
+    use std::time::Duration;
+    let server = common::start_server(None, |_| {}).await;
+    let mut c = common::connect(server.addr()).await;
+    common::create(&mut c, "slow", common::discrete(4, 8, 2, 1, 2)).await;
+    let (slow, _) = common::Stream::open(&mut c, "slow", 64).await.unwrap();
+    let n = 64;
+    let batch = common::batch(&vec![1; n], &vec![1.0; n], &vec![false; n]);
+    let size = proto::ShapeRequest {
+        kind: Some(proto::shape_request::Kind::Steps(batch.clone())),
+    }
+    .encoded_len();
+    let mut taken = 0usize;
+    loop {
+        let send = slow.tx.send(proto::ShapeRequest {
+            kind: Some(proto::shape_request::Kind::Steps(batch.clone())),
+        });
+        match tokio::time::timeout(Duration::from_secs(1), send).await {
+            Ok(Ok(())) => taken += 1,
+            Ok(Err(_)) => panic!("the server ended the stream"),
+            Err(_) => break, // held back
+        }
+        assert!(
+            taken * size < 64 << 20,
+            "{taken} batches ({size} B each) taken without a read: no backpressure"
+        );
+    }
+    assert!(taken > 0);
+    // The server is not stuck: another stream on the same connection is served.
+    let b = tokio::time::timeout(Duration::from_secs(10), async {
+        let (mut other, _) = common::Stream::open(&mut c, "slow", 1).await.unwrap();
+        other.step(common::batch(&[2], &[1.0], &[false])).await
+    })
+    .await
+    .expect("another stream of the connection is served while one is stalled")
+    .unwrap();
+    assert_eq!(b.steps, [0]);
+    // Reading the slow stream's answers lets it go on, in order.
+    let mut slow = slow;
+    let first = slow.recv().await.unwrap().unwrap();
+    match first.kind {
+        Some(proto::shape_response::Kind::Shaped(s)) => assert_eq!(s.steps, vec![0; n]),
+        other => panic!("expected shaped, got {other:?}"),
+    }
+}

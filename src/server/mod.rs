@@ -93,6 +93,16 @@ impl RunningServer {
     }
 }
 
+/// HTTP/2 receive window of one stream: what a client can have in flight on a stream
+/// whose answers it does not read (the server stops reading a stream whose two queued
+/// answers are not taken). hyper's default.
+const STREAM_WINDOW: u32 = 1 << 20;
+/// HTTP/2 receive window of one connection, shared by its streams: 16 streams' worth, so
+/// that one stalled stream cannot stop the others of its connection (with hyper's default
+/// the two windows are equal, and it does). The bound on what one connection can make the
+/// server hold of unread requests.
+const CONNECTION_WINDOW: u32 = 16 << 20;
+
 /// Opens the store, restores every task, binds and starts serving.
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     // Before anything else: a bad certificate must not leave a half-started server.
@@ -178,6 +188,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         None => Server::builder(),
     };
     let router = builder
+        .initial_stream_window_size(STREAM_WINDOW)
+        .initial_connection_window_size(CONNECTION_WINDOW)
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(20)))
         .layer(GrpcMetricsLayer::new(metrics)) // outside the remap: sees the final codes

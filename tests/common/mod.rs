@@ -142,8 +142,8 @@ pub async fn wait_open_streams(c: &mut Client, id: &str, want: u32) {
 
 /// One open Shape stream driven step by step.
 pub struct Stream {
-    tx: mpsc::Sender<ShapeRequest>,
-    rx: Streaming<ShapeResponse>,
+    pub tx: mpsc::Sender<ShapeRequest>,
+    pub rx: Streaming<ShapeResponse>,
 }
 
 impl Stream {
