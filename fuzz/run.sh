@@ -45,7 +45,7 @@ fuzz() {
         tail -40 "logs/$t.log"
         return 1
     fi
-    grep -E '^#[0-9]+ +DONE|^stat::(number_of_executed_units|average_exec_per_sec)' "logs/$t.log" |
+    grep -E '^#[0-9]+[[:space:]]+DONE|^stat::(number_of_executed_units|average_exec_per_sec)' "logs/$t.log" |
         sed "s/^/$t: /"
 }
 
