@@ -62,14 +62,6 @@ const UNDECODABLE: [(&str, &[u8]); 4] = [
     ),
 ];
 
-/// The unary RPCs: every one of the one table but the `Shape` stream.
-fn unary_rpcs() -> impl Iterator<Item = &'static str> {
-    tamrm::auth::SHAPING_ROLES
-        .iter()
-        .map(|(rpc, _)| *rpc)
-        .filter(|rpc| *rpc != "Shape")
-}
-
 async fn raw_channel(addr: std::net::SocketAddr) -> tonic::client::Grpc<tonic::transport::Channel> {
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
         .unwrap()
@@ -101,7 +93,7 @@ async fn every_unary_rpc_answers_undecodable_bytes_with_invalid_argument() {
     create(&mut c, "t", discrete(2, 2, 2, 0, 1)).await;
     let before = get_task(&mut c, "t").await;
     let mut raw = raw_channel(server.addr()).await;
-    for rpc in unary_rpcs() {
+    for rpc in tamrm::auth::unary_rpcs() {
         // ListTasksRequest has no fields: only bytes that cannot be parsed at all count.
         for (what, bytes) in UNDECODABLE {
             if rpc == "ListTasks" && what.starts_with("field 1") {

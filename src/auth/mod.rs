@@ -67,6 +67,14 @@ pub const SHAPING_ROLES: &[(&str, Role)] = &[
     ("ResetPool", Role::Admin),
 ];
 
+/// The unary RPCs: every one of [`SHAPING_ROLES`] but the `Shape` stream.
+pub fn unary_rpcs() -> impl Iterator<Item = &'static str> {
+    SHAPING_ROLES
+        .iter()
+        .map(|(rpc, _)| *rpc)
+        .filter(|rpc| *rpc != "Shape")
+}
+
 /// What a request without credentials is told, wherever it is refused.
 pub const MISSING_CREDENTIALS: &str =
     "missing credentials: this server needs the metadata `authorization: Bearer <key>`";
