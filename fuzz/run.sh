@@ -4,6 +4,10 @@
 #   fuzz/run.sh build                     build the targets (and write missing seed corpora)
 #   fuzz/run.sh run SECONDS [TARGET...]   build, then fuzz each target for SECONDS, one
 #                                         after the other (default: every target)
+#   fuzz/run.sh cpu SECONDS TARGET        build, then fuzz TARGET until it has used SECONDS
+#                                         of CPU time (user + system, all its threads), then
+#                                         stop it gracefully (SIGUSR1): the long runs, fair
+#                                         however busy the machine is
 #   fuzz/run.sh replay                    build, then run every input of fuzz/regressions/
 #                                         once through its target
 #
@@ -35,17 +39,38 @@ build() {
     done
 }
 
+# fuzz TARGET SECONDS [CPU_SECONDS]: libFuzzer on TARGET for SECONDS of wall time, or, with
+# CPU_SECONDS, until the process has used that much CPU time (then SIGUSR1: libFuzzer
+# finishes the input at hand, prints its final stats and exits 0).
 fuzz() {
-    local t=$1 seconds=$2
+    local t=$1 seconds=$2 cpu=${3:-}
     mkdir -p "work/$t" "artifacts/$t" logs
-    if ! "$bin/$t" "work/$t" "corpus/$t" -max_total_time="$seconds" -timeout=20 \
+    "$bin/$t" "work/$t" "corpus/$t" -max_total_time="$seconds" -timeout=20 \
         -rss_limit_mb=2048 -max_len=8192 -print_final_stats=1 \
-        -artifact_prefix="artifacts/$t/" > "logs/$t.log" 2>&1; then
+        -artifact_prefix="artifacts/$t/" > "logs/$t.log" 2>&1 &
+    local pid=$! started
+    started=$(date +%s)
+    if [ -n "$cpu" ]; then
+        local tck used
+        tck=$(getconf CLK_TCK)
+        while kill -0 "$pid" 2> /dev/null; do
+            # utime and stime (fields 14, 15 of /proc/PID/stat; the name in field 2 has
+            # no blanks here) cover every thread of the process.
+            used=$(awk -v t="$tck" '{ print int(($14 + $15) / t) }' "/proc/$pid/stat" 2> /dev/null || echo 0)
+            if [ "$used" -ge "$cpu" ]; then
+                kill -USR1 "$pid" 2> /dev/null || true
+                break
+            fi
+            sleep 5
+        done
+    fi
+    if ! wait "$pid"; then
         echo "!!! $t failed (a crash, a leak of memory or a timeout):"
         tail -40 "logs/$t.log"
         return 1
     fi
-    grep -E '^#[0-9]+[[:space:]]+DONE|^stat::(number_of_executed_units|average_exec_per_sec)' "logs/$t.log" |
+    echo "$t: wall time $(($(date +%s) - started)) s"
+    grep -E '^#[0-9]+[[:space:]]+DONE|^stat::(number_of_executed_units|average_exec_per_sec)|exiting as requested' "logs/$t.log" |
         sed "s/^/$t: /"
 }
 
@@ -64,6 +89,14 @@ run)
     done
     exit $status
     ;;
+cpu)
+    cpu=${2:?usage: fuzz/run.sh cpu SECONDS TARGET}
+    t=${3:?usage: fuzz/run.sh cpu SECONDS TARGET}
+    build
+    echo "=== fuzzing $t until it has used ${cpu}s of CPU time"
+    # The wall-time cap only guards against a run that never gets the CPU.
+    fuzz "$t" $((cpu * 20)) "$cpu"
+    ;;
 replay)
     build
     for t in "${all[@]}"; do
@@ -74,7 +107,7 @@ replay)
     done
     ;;
 *)
-    echo "usage: fuzz/run.sh build | run SECONDS [TARGET...] | replay" >&2
+    echo "usage: fuzz/run.sh build | run SECONDS [TARGET...] | cpu SECONDS TARGET | replay" >&2
     exit 2
     ;;
 esac
