@@ -12,6 +12,7 @@
 
 mod columns;
 mod engine;
+mod mlp;
 mod options;
 mod remote;
 mod stream;
@@ -79,5 +80,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<remote::Channel>()?;
     m.add_class::<options::ChannelOptions>()?;
     m.add_class::<stream::NativeStream>()?;
+    m.add_class::<mlp::Mlp>()?;
     Ok(())
 }

@@ -66,6 +66,7 @@ except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the in
         name=_missing.name,
     ) from None
 
+from tamrm import _native
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
 from tamrm._wrapping import check_session, close_session
@@ -78,12 +79,13 @@ class _MlpCritic:
 
     Built by :meth:`of` for the usual SB3 policies (``MlpPolicy`` of A2C, PPO, DQN): a
     ``Box`` (non-image) observation space, a ``FlattenExtractor``, and a stack of
-    ``nn.Linear`` layers with ``Tanh``/``ReLU`` activations, float32 on the CPU. The arrays
-    are numpy views of the torch parameters (``Tensor.numpy()`` shares the memory), so
-    every in-place update (optimizer steps, ``load_state_dict``) is seen without a copy;
-    a parameter whose storage was replaced (``.data = ...``) makes :meth:`current` false
-    and the critic is built again. The values equal torch's up to float32 rounding (the
-    same float32 weights, another summation order): about 1e-7 relative.
+    ``nn.Linear`` layers with ``Tanh``/``ReLU`` activations, float32 on the CPU. It runs
+    in the native extension (``tamrm._native.Mlp``) on numpy views of the torch
+    parameters (``Tensor.numpy()`` shares the memory), so every in-place update
+    (optimizer steps, ``load_state_dict``) is seen without a copy; a parameter whose
+    storage was replaced (``.data = ...``) makes :meth:`current` false and the critic is
+    built again. The values equal torch's up to float32 rounding (the same float32
+    weights, another summation order, tanh within 8 ulps): about 1e-7 relative.
     """
 
     def __init__(
@@ -93,7 +95,7 @@ class _MlpCritic:
     ) -> None:
         self._params = params
         self._ptrs = tuple(t.data_ptr() for t in params)
-        self._layers = layers
+        self._mlp = _native.Mlp(layers)
 
     @classmethod
     def of(cls, policy: Any) -> _MlpCritic | None:
@@ -151,15 +153,7 @@ class _MlpCritic:
     def __call__(self, obs: ObsBatch) -> npt.NDArray[np.float32]:
         """The critic's output for a batch: ``(B, out)``, float32."""
         x = np.asarray(obs, dtype=np.float32)
-        x = x.reshape(x.shape[0], -1)
-        for weight, bias, activation in self._layers:
-            x = np.matmul(x, weight.T)
-            x += bias
-            if activation == "tanh":
-                np.tanh(x, out=x)
-            elif activation == "relu":
-                np.maximum(x, 0.0, out=x)
-        return x
+        return self._mlp(np.ascontiguousarray(x.reshape(x.shape[0], -1)))
 
 
 class ModelValueFn:
