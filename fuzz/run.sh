@@ -24,6 +24,7 @@ triple=$(rustc -vV | sed -n 's/^host: //p')
 bin=target/$triple/release
 
 build() {
+    local t
     export RUSTFLAGS="--cfg fuzzing -C passes=sancov-module \
  -C llvm-args=-sanitizer-coverage-level=4 \
  -C llvm-args=-sanitizer-coverage-inline-8bit-counters \
