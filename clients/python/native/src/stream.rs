@@ -3,7 +3,7 @@
 
 use std::sync::Mutex;
 
-use numpy::{IntoPyArray, PyArray1};
+use numpy::{IntoPyArray, PyArray1, PyArray2};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -73,11 +73,11 @@ pub struct NativeStream {
     opened: Vec<u8>,
 }
 
-/// What a step returns to Python: the answer's columns and the pool version.
+/// What a step returns to Python: the float columns as the rows of one `(4, B)` array
+/// (R_meta, r(t), F, knn_active as 0/1: a wrapper sums them with one add), the step
+/// indices, knn_active, and the pool version.
 type StepAnswer<'py> = (
-    Bound<'py, PyArray1<f64>>,
-    Bound<'py, PyArray1<f64>>,
-    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray1<i64>>,
     Bound<'py, PyArray1<bool>>,
     u64,
@@ -128,7 +128,8 @@ impl NativeStream {
     }
 
     /// Shapes one step. Arrays as documented in `tamrm._session`; returns
-    /// `(rewards, knn_rewards, potentials, steps, knn_active, pool_version)`.
+    /// `(parts, steps, knn_active, pool_version)`, `parts` the `(4, B)` float64 rows
+    /// rewards, knn_rewards, potentials, knn_active (0/1).
     #[pyo3(signature = (env_ids, actions, rewards, terminated, truncated, values, next_values, q_values, next_q_values, score_rows, score_values))]
     #[allow(clippy::too_many_arguments)]
     fn step<'py>(
@@ -304,10 +305,16 @@ impl NativeStream {
 }
 
 fn answer_arrays(py: Python<'_>, a: Answer, pool_version: u64) -> StepAnswer<'_> {
+    let n = a.rewards.len();
+    let mut parts = a.rewards;
+    parts.reserve_exact(3 * n);
+    parts.extend_from_slice(&a.knn_rewards);
+    parts.extend_from_slice(&a.potentials);
+    parts.extend(a.knn_active.iter().map(|&on| if on { 1.0 } else { 0.0 }));
+    let parts = numpy::ndarray::Array2::from_shape_vec((4, n), parts)
+        .unwrap_or_else(|_| unreachable!("4 columns of n entries"));
     (
-        a.rewards.into_pyarray(py),
-        a.knn_rewards.into_pyarray(py),
-        a.potentials.into_pyarray(py),
+        PyArray2::from_owned_array(py, parts),
         a.steps.into_pyarray(py),
         a.knn_active.into_pyarray(py),
         pool_version,

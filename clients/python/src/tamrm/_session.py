@@ -284,8 +284,9 @@ class Session(Closing):
         except KeyboardInterrupt:
             self._error = SessionClosed(f"the session on task {self.task_id!r} was interrupted")
             raise
-        self._pool_version = answer[5]
-        return StepResult(answer[0], answer[1], answer[2], answer[3], answer[4], answer[5], rows)
+        parts, steps, active, pool_version = answer
+        self._pool_version = pool_version
+        return StepResult(parts[0], parts[1], parts[2], steps, active, pool_version, rows, parts)
 
     def abandon(self, env_ids: npt.ArrayLike) -> None:
         """Drop the current episodes of ``env_ids`` without offering them to the pool.

@@ -94,7 +94,7 @@ class _MlpCritic:
         layers: list[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], str]],
     ) -> None:
         self._params = params
-        self._ptrs = tuple(t.data_ptr() for t in params)
+        self._ptrs = [t.data_ptr() for t in params]
         self._mlp = _native.Mlp(layers)
 
     @classmethod
@@ -148,7 +148,7 @@ class _MlpCritic:
 
     def current(self) -> bool:
         """Whether every parameter still has the storage the views were taken of."""
-        return all(t.data_ptr() == p for t, p in zip(self._params, self._ptrs, strict=True))
+        return [t.data_ptr() for t in self._params] == self._ptrs
 
     def __call__(self, obs: ObsBatch) -> npt.NDArray[np.float32]:
         """The critic's output for a batch: ``(B, out)``, float32."""
@@ -312,8 +312,8 @@ def _with_rows(obs: ObsBatch, infos: list[dict[str, Any]], rows: list[int]) -> O
     return out
 
 
-# Rows of ShapedVecEnv._acc: the sums of R_meta, r(t), F, 1 (the length), R, knn_active.
-_SUMS = 6
+# Rows of ShapedVecEnv._acc: the sums of R_meta, r(t), F, knn_active (0/1) and R.
+_SUMS = 5
 
 
 @dataclass(frozen=True)
@@ -390,15 +390,15 @@ class ShapedVecEnv(VecEnvWrapper):
         config = session.config
         n = venv.num_envs
         self._action_shape = (n,) if config.discrete else (n, config.action_dim)
-        self._ones = np.ones(n, dtype=np.float64)
         # Per env (columns), the sums over its current episode (rows, see _SUMS): the
-        # shaped return, r(t), F, the length, R and the steps with kNN active. alpha and
-        # beta multiply the sums of r(t) and F when they are read.
+        # shaped return, r(t), F, the steps with kNN active and R. alpha and beta multiply
+        # the sums of r(t) and F when they are read.
         self._acc = np.zeros((_SUMS, n), dtype=np.float64)
         # For take_stats: the sums of the episodes ended since the last call, and the
         # columns of self._acc as they were at the last call.
         self._ended = np.zeros(_SUMS, dtype=np.float64)
         self._taken = np.zeros((_SUMS, n), dtype=np.float64)
+        self._env_steps = 0  # shaped since the last take_stats
         self._pool_version = -1
 
     def env_is_wrapped(self, wrapper_class: type[Any], indices: Any = None) -> list[bool]:
@@ -451,7 +451,8 @@ class ShapedVecEnv(VecEnvWrapper):
         sums = self._ended + (self._acc - self._taken).sum(axis=1)
         self._ended = np.zeros(_SUMS, dtype=np.float64)
         self._taken = self._acc.copy()
-        _, knn, potential, env_steps, reward_env, knn_active = sums.tolist()
+        env_steps, self._env_steps = self._env_steps, 0
+        _, knn, potential, knn_active, reward_env = sums.tolist()
         if not env_steps:
             return ShapingStats()
         cfg = self.session.config
@@ -542,7 +543,7 @@ class ShapedVecEnv(VecEnvWrapper):
         raw_obs, rewards, dones, infos = self.venv.step_wait()
         obs = _obs_batch(raw_obs)
         dones = np.asarray(dones, dtype=np.bool_)
-        done_rows = np.flatnonzero(dones).tolist()
+        done_rows: list[int] = np.flatnonzero(dones).tolist() if dones.any() else []
         # None: no env ended (all false), one array fewer to check and send.
         terminated = truncated = None
         if done_rows:
@@ -568,20 +569,19 @@ class ShapedVecEnv(VecEnvWrapper):
         result = self.session.step(
             actions, rewards, terminated, truncated, episode_scores=scores or None, **values
         )
-        # Per env: the sums of the episode so far (one add of the stacked columns).
-        self._acc += np.stack(
-            (
-                result.rewards,
-                result.knn_rewards,
-                result.potentials,
-                self._ones,
-                rewards,
-                result.knn_active,
+        # Per env: the sums of the episode so far. The native answer's (4, B) rows
+        # R_meta, r(t), F, knn_active are summed with one add, R with another.
+        parts = result._parts
+        if parts is None:
+            parts = np.stack(
+                (result.rewards, result.knn_rewards, result.potentials, result.knn_active)
             )
-        )
+        self._acc[:4] += parts
+        self._acc[4] += rewards
+        self._env_steps += self.num_envs
         self._pool_version = result.pool_version
         for i in done_rows:
-            self._end_episode(i, infos[i])
+            self._end_episode(i, infos[i], int(result.steps[i]) + 1)
         # One conversion per column, not per entry (this loop runs every vector step).
         columns = zip(
             infos,
@@ -603,16 +603,16 @@ class ShapedVecEnv(VecEnvWrapper):
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
 
-    def _end_episode(self, i: int, info: dict[str, Any]) -> None:
+    def _end_episode(self, i: int, info: dict[str, Any], length: int) -> None:
         """Put env ``i``'s finished episode into ``info["shaped_episode"]`` and the stats."""
         column = self._acc[:, i]
-        shaped_r, knn_sum, potential_sum, length, _, _ = column.tolist()
+        shaped_r, knn_sum, potential_sum, _, _ = column.tolist()
         cfg = self.session.config
         info["shaped_episode"] = {
             "r": shaped_r,
             "knn": cfg.alpha * knn_sum,
             "potential": cfg.beta * potential_sum,
-            "l": int(length),
+            "l": length,
         }
         self._ended += column - self._taken[:, i]
         column[:] = 0.0
