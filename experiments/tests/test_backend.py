@@ -7,9 +7,12 @@ import pytest
 
 tamrm = pytest.importorskip("tamrm")
 
+from synthetic import write_run  # noqa: E402
+
 from tamrm_experiments import cli  # noqa: E402
 from tamrm_experiments.args import parser  # noqa: E402
 from tamrm_experiments.configs import make_specs  # noqa: E402
+from tamrm_experiments.report import load_runs, write_report  # noqa: E402
 from tamrm_experiments.run import run_one, run_paths  # noqa: E402
 
 # One short run: the authors' cart pole (fixed start), TAMRM arm, quick budget.
@@ -103,3 +106,22 @@ def test_the_grid_with_an_unreachable_address_does_not_fall_back_to_the_engine(t
     assert rc == 1
     assert not run_paths(tmp_path, _spec())[2].exists()
     assert [f["run"] for f in _summary(tmp_path)["failed"]] == [_spec().key]
+
+
+def test_the_report_counts_backends_and_reads_older_runs_as_server(tmp_path):
+    runs = tmp_path / "runs"
+    specs = make_specs("quick", seeds=2, experiments=["maze"], variants=["clean"])
+    for spec in specs:
+        write_run(runs, spec, [50] * spec.budget.episodes)  # no "backend": older runs
+    # One run redone on the engine.
+    meta_path = run_paths(runs, specs[0])[2]
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "backend": "engine"}))
+    assert sorted(r.backend for r in load_runs(runs)) == ["engine"] + ["server"] * 7
+    out = tmp_path / "reproduction.md"
+    write_report(runs, out, tmp_path / "plots")
+    text = out.read_text()
+    how = text.split("## How this was run")[1]
+    assert "1 run on the embedded engine" in how and "7 runs on a tamrm server" in how
+    cost_row = next(line for line in how.splitlines() if line.startswith("| Maze | clean"))
+    assert "| engine 1, server 7 |" in cost_row
+    assert "gRPC round trip to the server;" not in text
