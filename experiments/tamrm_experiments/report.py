@@ -1038,8 +1038,8 @@ def _backend_counts(runs: list[Run]) -> str:
     counts = Counter(r.backend for r in runs)
     words = {
         "engine": "on the embedded engine, in process (`tamrm.Engine()`, one per run)",
-        "server": "on a tamrm server over gRPC (with the runs recorded without a backend, from "
-        "before the engine)",
+        "server": "on a tamrm server over gRPC (including the runs recorded before the "
+        "engine existed, whose sidecars name no backend)",
     }
     return "; ".join(
         f"{n} run{'s' if n != 1 else ''} {words.get(b, b)}" for b, n in sorted(counts.items())
