@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Smoke test of the whole reproduction pipeline, server included: lint, unit tests, the
-# --quick grid (1 seed, tiny budgets, every experiment x arm through a local tamrm server)
-# and the report, written into a temporary directory (docs/reproduction.md is untouched).
+# Smoke test of the whole reproduction pipeline: lint, unit tests (the server backend
+# included, against a local tamrm server), the --quick grid (1 seed, tiny budgets, every
+# experiment x arm, each run on an embedded engine) and the report, written into a
+# temporary directory (docs/reproduction.md is untouched).
 #
 # Env: TAMRM_VENV (default ./.venv, with clients/python[sb3] installed), TAMRM_BIN (default
 # target/release/tamrm). Called from .ci/run; takes 1-3 minutes.
@@ -21,7 +22,7 @@ cd experiments
 echo "--- experiments: ruff"
 "$py" -m ruff check .
 "$py" -m ruff format --check .
-echo "--- experiments: quick grid (server: $TAMRM_BIN)"
+echo "--- experiments: quick grid (embedded engine)"
 "$py" -m tamrm_experiments run --quick --jobs 2 --out "$tmp/runs" --no-progress
 echo "--- experiments: report"
 "$py" -m tamrm_experiments report --runs "$tmp/runs" --out "$tmp/report/reproduction.md"

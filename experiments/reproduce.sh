@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
-# The one command of the reproduction (docs/reproduction.md): start a local tamrm server,
-# run every experiment x arm x seed on all cores (resumable: finished runs are skipped),
-# then regenerate docs/reproduction.md and its plots from the raw CSVs.
+# The one command of the reproduction (docs/reproduction.md): run every experiment x arm x
+# seed on all cores, each run on an embedded tamrm engine of its own (or on a server with
+# --address HOST:PORT; resumable: finished runs are skipped), then regenerate
+# docs/reproduction.md and its plots from the raw CSVs.
 #
 #   experiments/reproduce.sh                # paper profile, every variant, 5 seeds
 #   experiments/reproduce.sh --seeds 10     # more seeds (reuses the first 5)
 #   experiments/reproduce.sh --fidelity authors --experiments cartpole   # a subset
 #   experiments/reproduce.sh --quick        # smoke test; report into experiments/runs-quick/
 #
-# Env: TAMRM_VENV (default ./.venv-exp), TAMRM_BIN (default target/release/tamrm).
+# Env: TAMRM_VENV (default ./.venv-exp), TAMRM_BIN (default target/release/tamrm; recorded
+# in the runs' versions only with --address).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$PWD

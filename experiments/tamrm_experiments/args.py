@@ -19,7 +19,7 @@ def parser() -> argparse.ArgumentParser:
     """The ``run`` and ``report`` command line."""
     top = argparse.ArgumentParser(
         prog="python -m tamrm_experiments",
-        description="Reproduce the TAMRM paper's experiments through the tamrm server.",
+        description="Reproduce the TAMRM paper's experiments with tamrm's shaping.",
     )
     sub = top.add_subparsers(dest="command", required=True)
 
@@ -59,7 +59,12 @@ def parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--reverse", action="store_true", help="run the grid from its end (a second invocation)"
     )
-    run.add_argument("--address", help="use a running server instead of starting one")
+    run.add_argument(
+        "--address",
+        metavar="HOST:PORT",
+        help="shape on the tamrm server at this address (default: each run on an embedded "
+        "engine of its own, tamrm.Engine(), in process)",
+    )
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--dry-run", action="store_true", help="list the runs to do and exit")
 

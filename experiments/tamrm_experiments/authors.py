@@ -1,12 +1,12 @@
-"""The ``authors`` fidelity: the authors' training loops, with the tamrm server shaping.
+"""The ``authors`` fidelity: the authors' training loops, with tamrm shaping.
 
 One episode loop per learner, as in the authors' scripts (``Carpole_test/carpole.py``,
 ``MountainCar_test/run_MountainCar.py``): act, step the environment, send the step to
-the server (with the learner's own values for the potential term), override the reward
-of a terminal step as they do, learn. The server computes ``R + alpha r(t) + beta F``
-with ``gate_potential`` (their code adds both terms only inside the kNN window); the
-loop recomputes the same sum from the returned parts and checks it against the server's
-reward, so a run also tests the server's gating.
+tamrm (its embedded engine or a server; with the learner's own values for the potential
+term), override the reward of a terminal step as they do, learn. tamrm computes
+``R + alpha r(t) + beta F`` with ``gate_potential`` (their code adds both terms only
+inside the kNN window); the loop recomputes the same sum from the returned parts and
+checks it against tamrm's reward, so a run also tests tamrm's gating.
 
 Differences to their code that remain (the server follows SPEC.md, see
 ``tests/test_authors_formula.py`` for r(t) itself): their window ends one step earlier

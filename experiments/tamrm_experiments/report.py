@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,12 @@ class Run:
     def budget(self) -> dict[str, Any]:
         """The run's budget (episodes, caps)."""
         return dict(self.meta["spec"]["budget"])
+
+    @property
+    def backend(self) -> str:
+        """Where its shaping was computed: ``engine`` (embedded, in process) or ``server``
+        (over gRPC; every run recorded before the engine, whose sidecar has no key)."""
+        return str(self.meta.get("backend", "server"))
 
 
 def load_runs(runs_dir: Path) -> list[Run]:
@@ -423,7 +430,7 @@ def _diagnostics(runs: list[Run]) -> list[str]:
     """Per arm: how much each shaping term contributed, per step."""
     lines = [
         "Shaping diagnostics (mean over seeds of per-run totals / steps): the kNN reward "
-        "r(t) and the potential term F as computed by the server, before the weights "
+        "r(t) and the potential term F as computed by tamrm, before the weights "
         "alpha and beta, and the share of steps where the kNN term was active.",
         "",
         "| arm | r(t) per step | F per step | kNN active | shaped minus env reward per step |",
@@ -488,8 +495,8 @@ DEVIATIONS = [
     "once the mean of 100 episodes reaches 195; tutorial DQN for mountain car, 1x20 ReLU, "
     "RMSProp 0.005, MSE, gamma 0.9, learning only once 50 000 steps were taken, target "
     "copied every 500 learning steps, epsilon 1 -> 0.1 by 5e-5 per learning step), their "
-    "episode loops (`tamrm_experiments/authors.py`) and their shaping settings, served by "
-    "the server: both terms only while the pool is full and N <= t < L_min "
+    "episode loops (`tamrm_experiments/authors.py`) and their shaping settings, computed "
+    "by tamrm: both terms only while the pool is full and N <= t < L_min "
     "(`gate_potential` on; PBRS-only arm: their ungated PBRS line), their terminal "
     "overrides after the shaping (cart pole: -1 on failure; mountain car: +10 at the "
     "goal), the episode score = the sum of the environment rewards.",
@@ -502,7 +509,7 @@ DEVIATIONS = [
     "pool 20, k 20, N 10, gamma 0.9, potential from max Q(s) of the online and "
     "max Q(s') of the target network (theirs); *their signs* alpha = beta = -1 (their "
     "code subtracts both terms) and *the paper's* +1.",
-    "What remains different from the authors' code (the server follows SPEC.md): their "
+    "What remains different from the authors' code (tamrm follows SPEC.md): their "
     "window ends one step earlier (t < L_min - 1); their pool also replaces the worst "
     "trajectory on a tie; their distances add 0.001 to every component and they round "
     "f(t) to 4 decimals (`experiments/tests/test_authors_formula.py` checks r(t) against a "
@@ -531,7 +538,7 @@ DEVIATIONS = [
     "(`Variant.plain_from`): mountain car's paper's signs use their signs' plain runs, "
     "`clean-gated` uses `clean`'s, the maze's pool of 10 its pool of 3's.",
     "**Clean fidelity**: Stable-Baselines3 learners on `tamrm.sb3.ShapedVecEnv` (one "
-    "gRPC round trip per environment step, the potential from the model's own estimates: "
+    "call to tamrm per environment step, the potential from the model's own estimates: "
     "A2C critic V(s), DQN max_a Q(s, a) of the online network), the service's defaults "
     "(N = 10, min_pool_size = pool capacity) and two variants: `gate_potential` off (as "
     "the first report ran) and on.",
@@ -553,7 +560,7 @@ DEVIATIONS = [
     f"{MAZE_NEW_START} (our choice; shortest path {maze_shortest_path(MAZE_NEW_START)} "
     "moves); every arm, plain included, continues on a new task id (a fresh pool); the "
     "DQN keeps its network and replay buffer.",
-    "Every arm, plain included, goes through the server (plain: alpha = beta = 0), so "
+    "Every arm, plain included, goes through tamrm (plain: alpha = beta = 0), so "
     "that every arm runs the same loop; kNN only (beta = 0) is the ablation the paper "
     "lacks. Each run has a safety cap on its total steps; a run reaching it is reported "
     "as censored (its totals are lower bounds, marked ≥).",
@@ -892,15 +899,25 @@ def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
     return lines
 
 
+def _backends(runs: list[Run]) -> str:
+    """The runs' backends, counted: ``server``, or ``engine 3, server 10`` when mixed."""
+    counts = Counter(r.backend for r in runs)
+    if len(counts) == 1:
+        return next(iter(counts))
+    return ", ".join(f"{b} {n}" for b, n in sorted(counts.items()))
+
+
 def _cost(groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, int]]) -> list[str]:
     lines = [
-        "Cost per run (each environment step is one gRPC round trip to the server; 2 cores "
-        "shared with other work, runs under `nice`), and what the pending runs of each "
-        "variant would cost at that rate (one run per core; runs in progress count whole):",
+        "Cost per run (each environment step is one call to tamrm: in process on the "
+        "embedded engine, or a gRPC round trip to a local server, as the *backend* column "
+        "says; 2 cores shared with other work, runs under `nice`), and what the pending runs "
+        "of each variant would cost at that rate (one run per core; runs in progress count "
+        "whole):",
         "",
-        "| experiment | variant | runs | steps per run | wall time per run | steps/s "
+        "| experiment | variant | runs | backend | steps per run | wall time per run | steps/s "
         "| pending runs | their estimated cost |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     total_pending = 0.0
     for (exp_name, variant), runs in groups.items():
@@ -926,7 +943,7 @@ def _cost(groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, i
             est = "unknown (no finished run yet)"
         lines.append(
             f"| {exp.short} | {exp.variant(variant).label} | {len(runs)} | "
-            f"{_fmt_interval(steps, '{:,.0f}')} | "
+            f"{_backends(runs) if runs else '-'} | {_fmt_interval(steps, '{:,.0f}')} | "
             + (f"{_fmt_interval(wall, '{:,.1f}')} min" if runs else "-")
             + f" | {_fmt_interval(rate, '{:,.0f}')} | {len(pending)} | {est} |"
         )
@@ -966,7 +983,9 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
         "kNN only, TAMRM), several seeds: *authors* (the learners, environments, gating, "
         "signs and terminal overrides of the authors' published code, transcribed) and "
         "*clean* (Stable-Baselines3 learners, SPEC defaults, the potential term ungated and "
-        "gated). The server computes every shaped reward.",
+        "gated). tamrm computes every shaped reward: in process (its embedded engine) or "
+        "on a server over gRPC, the same rewards either way (each run's backend: "
+        "*How this was run*).",
         "",
     ]
     if not runs:
@@ -1015,6 +1034,18 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
     out.write_text("\n".join(lines))
 
 
+def _backend_counts(runs: list[Run]) -> str:
+    counts = Counter(r.backend for r in runs)
+    words = {
+        "engine": "on the embedded engine, in process (`tamrm.Engine()`, one per run)",
+        "server": "on a tamrm server over gRPC (including the runs recorded before the "
+        "engine existed, whose sidecars name no backend)",
+    }
+    return "; ".join(
+        f"{n} run{'s' if n != 1 else ''} {words.get(b, b)}" for b, n in sorted(counts.items())
+    )
+
+
 def _how_run(runs_dir: Path, runs: list[Run], out: Path, previous: Path | None = None) -> list[str]:
     all_invs = [i for i in _invocations(runs_dir) if i.get("runs_todo")]
     starts = sorted(i["started_utc"] for i in all_invs if "started_utc" in i)
@@ -1042,6 +1073,9 @@ def _how_run(runs_dir: Path, runs: list[Run], out: Path, previous: Path | None =
         f"- Wall time of the finished invocations: {_busy_minutes(all_invs):.0f} min with at "
         f"least one running ({elapsed}); sum of the wall times of the {len(runs)} finished runs: "
         f"{run_wall / 60:.1f} min; {total_steps:,} environment steps.",
+        "- Backend (where the shaping was computed; the same rewards either way): "
+        + _backend_counts(runs)
+        + ".",
         "- Versions: " + ", ".join(f"{k} {v}" for k, v in sorted(vers.items())) + ".",
     ]
     varying: dict[str, set[str]] = {}
@@ -1052,7 +1086,8 @@ def _how_run(runs_dir: Path, runs: list[Run], out: Path, previous: Path | None =
     if parts:
         lines.append(
             "- Versions that differ between runs (the repository moved on while the grid "
-            "ran; the server binary and the packages are what count): " + "; ".join(parts)
+            "ran; the server binary or the engine's native extension, and the packages, are "
+            "what count): " + "; ".join(parts)
         )
     lines.append("")
     return lines

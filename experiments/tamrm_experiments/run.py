@@ -1,9 +1,14 @@
-"""One run (experiment, arm, seed) through the tamrm server, and the grid runner.
+"""One run (experiment, arm, seed) shaped by tamrm, and the grid runner.
 
-A run trains a Stable-Baselines3 model on a ``ShapedVecEnv`` (the rewards it learns from
-are the server's R_meta) and writes one CSV row per finished episode. The CSV is written
-under a temporary name and renamed, together with a JSON sidecar, only when the run is
-complete: a finished run is never redone, an interrupted one is redone from scratch.
+A run trains a learner (the authors' loop, or a Stable-Baselines3 model on a
+``ShapedVecEnv``) on the rewards tamrm computes, R_meta, and writes one CSV row per
+finished episode. tamrm is either the embedded engine (``tamrm.Engine()``, in this
+process, one per run: the default) or a server at an address (``tamrm.Client``); the two
+give bit-identical rewards, the engine without a network round trip per step. The run's
+JSON sidecar records which (``"backend"``: ``"engine"`` or ``"server"``; sidecars written
+before the engine have no key and were ``"server"``). The CSV is written under a
+temporary name and renamed, together with the sidecar, only when the run is complete: a
+finished run is never redone, an interrupted one is redone from scratch.
 """
 
 from __future__ import annotations
@@ -29,7 +34,10 @@ import numpy as np
 from tamrm_experiments.configs import EXPERIMENTS, RunSpec
 
 __all__ = [
+    "BACKENDS",
     "CSV_FIELDS",
+    "backend_of",
+    "connect",
     "is_complete",
     "run_grid",
     "run_one",
@@ -56,6 +64,25 @@ CSV_FIELDS = [
 ]
 
 REPO = Path(__file__).resolve().parents[2]
+
+#: Where a run's shaping is computed (its sidecar's ``"backend"``): the embedded engine,
+#: in process, or a tamrm server over gRPC.
+BACKENDS = ("engine", "server")
+
+
+def backend_of(address: str | None) -> str:
+    """The backend of a run given its server address: ``None`` is the embedded engine."""
+    return "engine" if address is None else "server"
+
+
+def connect(address: str | None) -> Any:
+    """A new ``tamrm.Engine()`` (in memory) if ``address`` is None, else a ``tamrm.Client``.
+
+    Both have the same methods (create_task, get_task, delete_task, session, ...) and
+    give the same rewards; the engine has no network, so no timeouts."""
+    import tamrm
+
+    return tamrm.Engine() if address is None else tamrm.Client(address)
 
 
 def run_paths(out: Path, spec: RunSpec) -> tuple[Path, Path, Path]:
@@ -95,8 +122,12 @@ def _git_rev() -> str:
     return rev + ("+dirty" if dirty else "")
 
 
-def versions() -> dict[str, str]:
-    """Versions of everything that shapes the numbers."""
+def versions(backend: str = "server") -> dict[str, str]:
+    """Versions of everything that shapes the numbers.
+
+    ``backend``: ``"server"`` records the local server binary (``tamrm_server``,
+    ``tamrm_server_sha256``); ``"engine"`` the client's native extension, which embeds
+    the engine (``tamrm_engine_sha256``)."""
     import gymnasium
     import stable_baselines3
     import tamrm
@@ -112,6 +143,15 @@ def versions() -> dict[str, str]:
         "tamrm_git": _git_rev(),
         "cpu_count": str(os.cpu_count()),
     }
+    if backend == "engine":
+        try:
+            from tamrm import _native
+
+            native = Path(str(_native.__file__))
+            out["tamrm_engine_sha256"] = hashlib.sha256(native.read_bytes()).hexdigest()[:16]
+        except Exception:  # informational only
+            out["tamrm_engine_sha256"] = "unknown"
+        return out
     try:
         binary = tamrm.find_binary()
         out["tamrm_server"] = subprocess.run(
@@ -261,15 +301,15 @@ def _sb3_kwargs(algo_kwargs: dict[str, Any], budget: Any) -> dict[str, Any]:
 
 def run_one(
     spec: RunSpec,
-    address: str,
+    address: str | None,
     out: Path,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
-    """Run ``spec`` against the server at ``address``; write its CSV and JSON under ``out``.
+    """Run ``spec``; write its CSV and JSON under ``out``.
 
-    Returns the JSON sidecar's content.
+    ``address``: ``None`` shapes on a new embedded engine of its own (``tamrm.Engine()``),
+    else on the server at ``address``. Returns the JSON sidecar's content.
     """
-    import tamrm
     import torch
 
     torch.set_num_threads(1)
@@ -286,7 +326,7 @@ def run_one(
     started = time.time()
     t0 = time.monotonic()
     n_actions = _num_actions(exp.env)
-    with tamrm.Client(address) as client, open(partial, "w", newline="") as fh:
+    with connect(address) as client, open(partial, "w", newline="") as fh:
         gate_on_server = _create_task(client, base_id, n_actions, task_cfg)
         writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
         writer.writeheader()
@@ -329,12 +369,13 @@ def run_one(
         "total_steps": total_steps,
         "censored": censored,
         "gate_potential_on_server": gate_on_server,
+        "backend": backend_of(address),
         "wall_time_s": round(wall, 2),
         "steps_per_s": round(total_steps / wall, 1) if wall > 0 else None,
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
         "task_ids": task_ids,
         "final_pools": final_pools,
-        "versions": versions(),
+        "versions": versions(backend_of(address)),
     }
     os.replace(partial, csv_path)
     tmp_meta = meta_path.with_suffix(".json.tmp")
@@ -403,7 +444,7 @@ def _worker_init(queue: Any) -> None:
     torch.set_num_threads(1)
 
 
-def _worker_run(spec: RunSpec, address: str, out: str) -> dict[str, Any]:
+def _worker_run(spec: RunSpec, address: str | None, out: str) -> dict[str, Any]:
     queue = _QUEUE
 
     def progress(n: int) -> None:
@@ -454,8 +495,9 @@ def run_grid(
 ) -> dict[str, Any]:
     """Run every spec not yet complete under ``out`` on ``jobs`` processes.
 
-    Starts one local tamrm server shared by all workers unless ``address`` is given.
-    Returns a summary (runs done, skipped, failed, wall time).
+    Each run shapes on an embedded engine of its own, or on the server at ``address`` if
+    given (no server is started here). Returns a summary (runs done, skipped, failed,
+    backend, wall time).
     """
     import multiprocessing as mp
 
@@ -471,8 +513,11 @@ def run_grid(
         "runs_skipped_complete": skipped,
         "runs_todo": len(todo),
         "jobs": jobs,
+        "backend": backend_of(address),
         "failed": [],
     }
+    if address is not None:
+        summary["server"] = address
     t0 = time.monotonic()
     # A start record: the report lists what a still-running invocation asked for.
     with open(out / "invocations.jsonl", "a") as fh:
@@ -484,13 +529,7 @@ def run_grid(
 
     signal.signal(signal.SIGTERM, _on_term)
     try:
-        if todo and address is None:
-            import tamrm
-
-            with tamrm.local_server() as server:
-                summary["server"] = str(server.process.args[0])
-                _run_pool(todo, server.address, out, jobs, summary, show_progress, mp, tqdm)
-        elif todo:
+        if todo:
             _run_pool(todo, address, out, jobs, summary, show_progress, mp, tqdm)
     finally:
         summary["wall_time_s"] = round(time.monotonic() - t0, 1)
@@ -502,7 +541,7 @@ def run_grid(
 
 def _run_pool(
     todo: list[RunSpec],
-    address: str,
+    address: str | None,
     out: Path,
     jobs: int,
     summary: dict[str, Any],
