@@ -1,4 +1,4 @@
-"""The numpy critic of ``model_value_fn``: torch's values, on views that follow training."""
+"""The native critic of ``model_value_fn``: torch's values, on views that follow training."""
 
 from __future__ import annotations
 
@@ -58,11 +58,11 @@ MODELS: dict[str, Any] = {
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
-def test_numpy_critic_equals_torch_and_follows_training(name: str) -> None:
+def test_native_critic_equals_torch_and_follows_training(name: str) -> None:
     env = make_vec_env("CartPole-v1", n_envs=4, seed=0)
     model = MODELS[name](env)
     value_fn = tamrm.sb3.model_value_fn(model)
-    assert value_fn.uses_numpy
+    assert value_fn.native
     for rows in (1, 4, 16):
         obs = _obs(model, rows, seed=rows)
         got, want = value_fn(obs), _torch_values(model, obs)
@@ -131,7 +131,7 @@ UNSUPPORTED: dict[str, Any] = {
 
 
 def _assert_torch_bit_for_bit(model: BaseAlgorithm, value_fn: tamrm.sb3.ModelValueFn) -> None:
-    assert not value_fn.uses_numpy
+    assert not value_fn.native
     obs = _obs(model, 6, seed=3)
     tensor, _ = model.policy.obs_to_tensor(obs)
     with torch.no_grad():
@@ -158,6 +158,6 @@ def test_bind_model_chooses_the_evaluation(client: tamrm.Client, task_id: str, f
         model = A2C("MlpPolicy", env, seed=0)
         env.bind_model(model, fast=fast)
         assert isinstance(env.value_fn, tamrm.sb3.ModelValueFn)
-        assert env.value_fn.uses_numpy is fast
+        assert env.value_fn.native is fast
         model.learn(50)
         env.close()
