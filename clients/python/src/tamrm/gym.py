@@ -301,8 +301,11 @@ class VectorShapedReward(VectorWrapper):
             episode_scores=self._episode_scores(info, (term | trunc) & sent, rows),
             **values,
         )
-        shaped = rewards.copy()
-        shaped[sent] = result.rewards
+        if rows is None:
+            shaped = result.rewards
+        else:
+            shaped = rewards.copy()
+            shaped[sent] = result.rewards
         info = dict(info)
         self._add_shaping_info(info, result, rewards, sent)
         self._obs = obs
@@ -345,18 +348,32 @@ class VectorShapedReward(VectorWrapper):
         sent: npt.NDArray[np.bool_],
     ) -> None:
         n = self.num_envs
-        columns: dict[str, npt.NDArray[np.generic]] = {
-            "original_reward": rewards.copy(),
-            "knn_reward": np.zeros(n, dtype=np.float64),
-            "potential": np.zeros(n, dtype=np.float64),
-            "shaping_step": np.zeros(n, dtype=np.int64),
-            "knn_active": np.zeros(n, dtype=np.bool_),
-            "pool_version": np.full(n, result.pool_version, dtype=np.int64),
-        }
-        columns["knn_reward"][sent] = result.knn_rewards
-        columns["potential"][sent] = result.potentials
-        columns["shaping_step"][sent] = result.steps
-        columns["knn_active"][sent] = result.knn_active
+        pool_version = np.full(n, result.pool_version, dtype=np.int64)
+        if result.rewards.shape[0] == n:
+            # Every env was sent (the usual step): the answer's columns are the info's.
+            columns: dict[str, npt.NDArray[np.generic]] = {
+                "original_reward": rewards.copy(),
+                "knn_reward": result.knn_rewards,
+                "potential": result.potentials,
+                "shaping_step": result.steps,
+                "knn_active": result.knn_active,
+                "pool_version": pool_version,
+            }
+        else:
+            columns = {
+                "original_reward": rewards.copy(),
+                "knn_reward": np.zeros(n, dtype=np.float64),
+                "potential": np.zeros(n, dtype=np.float64),
+                "shaping_step": np.zeros(n, dtype=np.int64),
+                "knn_active": np.zeros(n, dtype=np.bool_),
+                "pool_version": pool_version,
+            }
+            columns["knn_reward"][sent] = result.knn_rewards
+            columns["potential"][sent] = result.potentials
+            columns["shaping_step"][sent] = result.steps
+            columns["knn_active"][sent] = result.knn_active
+        # One mask array for the six keys: it says the same of each.
+        mask = sent.copy()
         for key, column in columns.items():
             info[key] = column
-            info[f"_{key}"] = sent.copy()
+            info[f"_{key}"] = mask
