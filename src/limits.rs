@@ -62,8 +62,11 @@ limits! {
     /// included) before the server ends it with UNAVAILABLE; 0 never [default: 600].
     stream_idle_timeout_secs: u64 = 600, env "TAMRM_STREAM_IDLE_TIMEOUT_SECS";
     /// Seconds between HTTP/2 keepalive pings to each client, a connection that does not
-    /// answer within 20 s is closed; 0 disables them [default: 30].
+    /// answer within keepalive_timeout_secs is closed; 0 disables them [default: 30].
     keepalive_secs: u64 = 30, env "TAMRM_KEEPALIVE_SECS";
+    /// Seconds a client has to answer a keepalive ping before its connection is closed
+    /// (at least 1) [default: 20].
+    keepalive_timeout_secs: u64 = 20, env "TAMRM_KEEPALIVE_TIMEOUT_SECS";
 }
 
 #[cfg(test)]

@@ -191,7 +191,9 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         .initial_stream_window_size(STREAM_WINDOW)
         .initial_connection_window_size(CONNECTION_WINDOW)
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
-        .http2_keepalive_timeout(Some(Duration::from_secs(20)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(
+            settings.limits.keepalive_timeout_secs.max(1),
+        )))
         .layer(GrpcMetricsLayer::new(metrics)) // outside the remap: sees the final codes
         .layer(tower::util::MapResponseLayer::new(remap_response_headers))
         .layer(tower::util::option_layer(access.map(AuthLayer::new)))

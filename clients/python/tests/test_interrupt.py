@@ -24,6 +24,14 @@ SCRIPT = textwrap.dedent(
     with client.session("t") as session:
         session.step([1], [1.0])
         os.kill(pid, signal.SIGSTOP)  # the server hangs from now on
+        # ... once every thread of it has stopped (a loaded machine takes a while; a fast
+        # client could otherwise still get its answer from a thread not yet stopped).
+        tasks = f"/proc/{pid}/task"
+        while any(
+            open(f"{tasks}/{t}/stat").read().rsplit(")", 1)[1].split()[0] not in "tT"
+            for t in os.listdir(tasks)
+        ):
+            time.sleep(0.001)
         threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()  # Ctrl-C
         print("start", time.monotonic(), flush=True)
         if where == "step":

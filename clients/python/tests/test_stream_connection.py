@@ -1,0 +1,63 @@
+"""A remote session's own connection: it stays alive while the caller does not step.
+
+Each session's stream runs on a connection of its own, driven by the thread that calls
+``step`` (no hand-off to a worker thread). Between steps a keeper thread answers the
+server's keepalive pings; without it, a training loop that pauses (evaluation, saving)
+for longer than the server's keepalive interval plus timeout would lose its stream.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+import tamrm
+
+
+def test_a_session_survives_a_pause_longer_than_the_keepalive_timeout(
+    server_binary: str,
+) -> None:
+    # The server pings every second and closes a connection that has not answered a
+    # ping within a second; the session sleeps 4 s between two steps, with resuming off,
+    # so a closed connection would fail the second step.
+    args = ["--keepalive-secs", "1", "--keepalive-timeout-secs", "1"]
+    with (
+        tamrm.local_server(binary=server_binary, in_memory=True, args=args) as server,
+        tamrm.Client(server.address, keepalive_secs=None, resume_timeout_secs=None) as client,
+    ):
+        client.create_task("pause", num_actions=2)
+        with client.session("pause", 2) as session:
+            first = session.step([0, 1], [1.0, 1.0])
+            time.sleep(4.0)
+            second = session.step([1, 1], [1.0, 1.0])
+            np.testing.assert_array_equal(second.steps, first.steps + 1)
+            assert not session.closed
+        assert client.get_task("pause").stats.steps_shaped == 4
+
+
+def test_sessions_in_threads_have_their_own_connections(server: tamrm.LocalServer) -> None:
+    # Several threads, one session each, stepping at once on one client: every answer
+    # is its own session's (the step index of each env counts that session's steps).
+    with tamrm.Client(server.address) as client:
+        client.create_task("threads-own-connections", num_actions=3)
+        errors: list[BaseException] = []
+
+        def run(seed: int) -> None:
+            try:
+                rng = np.random.default_rng(seed)
+                with client.session("threads-own-connections", 4) as session:
+                    for t in range(300):
+                        result = session.step(rng.integers(0, 3, size=4), np.ones(4))
+                        assert (result.steps == t).all(), (seed, t, result.steps)
+            except BaseException as exc:  # reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=run, args=(seed,)) for seed in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        assert not errors, errors
+        assert client.get_task("threads-own-connections").stats.steps_shaped == 4 * 300 * 4
