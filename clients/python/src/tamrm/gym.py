@@ -298,7 +298,11 @@ class VectorShapedReward(VectorWrapper):
             term if rows is None else term[rows],
             trunc if rows is None else trunc[rows],
             env_ids=rows,
-            episode_scores=self._episode_scores(info, (term | trunc) & sent, rows),
+            episode_scores=(
+                None
+                if self.score_key is None
+                else self._episode_scores(info, (term | trunc) & sent, rows)
+            ),
             **values,
         )
         if rows is None:
