@@ -125,23 +125,43 @@ impl Mlp {
         py: Python<'py>,
         obs: Bound<'py, PyArray2<f32>>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let [rows, width] = [obs.shape()[0], obs.shape()[1]];
-        let inputs = self.layers[0].inputs;
-        if width != inputs {
+        let rows = obs.shape()[0];
+        if obs.shape()[1] != self.inputs() {
             return Err(PyValueError::new_err(format!(
-                "Mlp: observations of shape {:?}, the first layer takes {inputs} inputs",
-                obs.shape()
+                "Mlp: observations of shape {:?}, the first layer takes {} inputs",
+                obs.shape(),
+                self.inputs()
             )));
         }
-        // SAFETY (the three `as_slice` below): the GIL is held for the whole call and no
-        // Python code runs during it, so nothing can write to or free these arrays while
-        // the slices live; they do not outlive the call. (Taking numpy's borrow flags
-        // instead costs about as much as the arithmetic of a small critic.)
+        // SAFETY: the GIL is held for the whole call and no Python code runs during it,
+        // so nothing can write to or free the array while the slice lives.
         let Ok(x) = (unsafe { obs.as_slice() }) else {
             return Err(PyValueError::new_err(
                 "Mlp: observations must be C-contiguous",
             ));
         };
+        let out = self.eval(py, x, rows)?;
+        let array = numpy::ndarray::Array2::from_shape_vec((rows, self.outputs()), out)
+            .map_err(|e| PyValueError::new_err(format!("Mlp: {e}")))?;
+        Ok(PyArray2::from_owned_array(py, array))
+    }
+}
+
+impl Mlp {
+    /// The outputs of the last layer.
+    pub(crate) fn outputs(&self) -> usize {
+        self.layers[self.layers.len() - 1].outputs
+    }
+
+    /// The network on `rows` rows of `x` (row-major, `inputs` wide): `rows × outputs`.
+    pub(crate) fn eval(&self, py: Python<'_>, x: &[f32], rows: usize) -> PyResult<Vec<f32>> {
+        if x.len() != rows * self.inputs() {
+            return Err(PyValueError::new_err(format!(
+                "Mlp: {} numbers for {rows} rows of {} inputs",
+                x.len(),
+                self.inputs()
+            )));
+        }
         let mut current = x.to_vec();
         let mut next = Vec::new();
         for layer in &self.layers {
@@ -153,6 +173,7 @@ impl Mlp {
                     "Mlp: a weight changed shape; build it again",
                 ));
             }
+            // SAFETY: as in `__call__` (the GIL is held, no Python code runs meanwhile).
             let (Ok(w), Ok(b)) = (unsafe { weight.as_slice() }, unsafe { bias.as_slice() }) else {
                 return Err(PyValueError::new_err(
                     "Mlp: a weight is no longer contiguous",
@@ -164,10 +185,7 @@ impl Mlp {
             layer.activation.apply(&mut next);
             std::mem::swap(&mut current, &mut next);
         }
-        let outputs = self.layers[self.layers.len() - 1].outputs;
-        let array = numpy::ndarray::Array2::from_shape_vec((rows, outputs), current)
-            .map_err(|e| PyValueError::new_err(format!("Mlp: {e}")))?;
-        Ok(PyArray2::from_owned_array(py, array))
+        Ok(current)
     }
 }
 

@@ -3,15 +3,17 @@
 
 use std::sync::Mutex;
 
-use numpy::{IntoPyArray, PyArray1, PyArray2};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyUntypedArrayMethods};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
+use pyo3::intern;
 use pyo3::prelude::*;
-use pyo3::types::PyBytes;
+use pyo3::types::{PyBytes, PyDict, PyList};
 use tamrm::proto;
 use tonic::Code;
 
 use crate::columns::{Answer, Prepared, Shape, StepArgs};
+use crate::mlp::Mlp;
 use crate::tracker::Tracker;
 use crate::{engine, remote, status};
 
@@ -65,6 +67,86 @@ pub(crate) struct Inner {
     pool_version: u64,
 }
 
+impl Inner {
+    /// Checks `args`, shapes them on the transport and records the answer (the one step
+    /// path of `step` and `step_vec`). A closed session, a bad argument or a failed
+    /// round trip is an error; after one that is not a rejected batch the session is
+    /// closed.
+    fn run(&mut self, py: Python<'_>, args: &StepArgs<'_, '_>) -> PyResult<Answer> {
+        if self.closed {
+            return Err(closed_error());
+        }
+        self.prepared.fill(py, self.shape, args)?;
+        let b = self.prepared.len();
+        if b == 0 {
+            // Nothing is sent; pending abandons wait for a batch with entries.
+            return Ok(Answer::default());
+        }
+        self.tracker.take_abandons(&mut self.prepared.abandon);
+        let result = {
+            let Inner {
+                transport,
+                tracker,
+                prepared,
+                ..
+            } = &mut *self;
+            py.detach(|| transport.step(prepared, tracker))
+        };
+        let answer = match result {
+            Ok(answer) => answer,
+            Err(StepError::Interrupted(interrupt)) => {
+                self.closed = true;
+                self.tracker.discard_episodes();
+                return Err(interrupt);
+            }
+            Err(StepError::Status(err)) => {
+                if err.code() == Code::InvalidArgument {
+                    // Rejected, nothing applied: the stream goes on (re-opened if remote);
+                    // the abandons travel with the next batch.
+                    let sent = std::mem::take(&mut self.prepared.abandon);
+                    self.tracker.restore_abandons(&sent);
+                    if let Transport::Remote(r) = &self.transport {
+                        if r.broken() {
+                            self.closed = true;
+                            self.tracker.discard_episodes();
+                        }
+                    }
+                } else {
+                    self.closed = true;
+                    self.transport.close();
+                    self.tracker.discard_episodes();
+                }
+                return Err(crate::status_error(&err));
+            }
+        };
+        if answer.consistent_len() != Some(b) {
+            self.closed = true;
+            self.transport.close();
+            return Err(status(
+                Code::Internal,
+                format!(
+                    "the server answered {} entries for a batch of {b}",
+                    answer.rewards.len()
+                ),
+            ));
+        }
+        if let Some((env, step)) = self.tracker.ignored_abandon(&self.prepared, &answer) {
+            self.closed = true;
+            self.transport.close();
+            return Err(status(
+                Code::Unimplemented,
+                format!(
+                    "the server ignored StepBatch.abandon (SPEC v1.1 §12): env {env} went on \
+                     with its abandoned episode at step {step}; upgrade the server"
+                ),
+            ));
+        }
+        self.tracker.record(&self.prepared, &answer);
+        self.pool_version = answer.pool_version;
+        Ok(answer)
+    }
+}
+
 /// An open session: `tamrm._session.Session` holds one.
 #[pyclass(frozen, module = "tamrm._native")]
 pub struct NativeStream {
@@ -115,6 +197,55 @@ impl NativeStream {
     }
 }
 
+/// Rows of the `sums` array of `step_vec`: R_meta, r(t), F, knn_active, R.
+const SUMS: usize = 5;
+
+/// `critic` on `before` and `after` (`n` rows each) as one batch: V(s) and V(s') as two
+/// `(n,)` arrays, or with `q` Q(s, ·) and Q(s', ·) as two `(n, outputs)` arrays.
+fn critic_values<'py>(
+    py: Python<'py>,
+    critic: &Mlp,
+    before: &Bound<'py, PyArray2<f32>>,
+    after: &Bound<'py, PyArray2<f32>>,
+    n: usize,
+    q: bool,
+) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+    let mut x = Vec::new();
+    for obs in [before, after] {
+        // SAFETY: the GIL is held and no Python code runs while the slice lives.
+        let Ok(rows) = (unsafe { obs.as_slice() }) else {
+            return Err(PyValueError::new_err(
+                "step_vec: observations must be C-contiguous",
+            ));
+        };
+        if obs.shape()[0] != n {
+            return Err(PyValueError::new_err(format!(
+                "step_vec: {} observations for {n} envs",
+                obs.shape()[0]
+            )));
+        }
+        x.extend_from_slice(rows);
+    }
+    let out = critic.eval(py, &x, 2 * n)?;
+    let k = critic.outputs();
+    if !q && k != 1 {
+        return Err(PyValueError::new_err(format!(
+            "step_vec: a state-value critic has 1 output, this one {k}"
+        )));
+    }
+    let (first, second) = out.split_at(n * k);
+    let pair = |half: &[f32]| -> PyResult<Bound<'py, PyAny>> {
+        Ok(if q {
+            let a = numpy::ndarray::Array2::from_shape_vec((n, k), half.to_vec())
+                .map_err(|e| PyValueError::new_err(format!("step_vec: {e}")))?;
+            PyArray2::from_owned_array(py, a).into_any()
+        } else {
+            PyArray1::from_slice(py, half).into_any()
+        })
+    };
+    Ok((pair(first)?, pair(second)?))
+}
+
 fn closed_error() -> PyErr {
     status(Code::Cancelled, "the session is closed")
 }
@@ -148,10 +279,6 @@ impl NativeStream {
         score_values: Option<Bound<'py, PyAny>>,
     ) -> PyResult<StepAnswer<'py>> {
         let mut guard = self.lock();
-        let inner = &mut *guard;
-        if inner.closed {
-            return Err(closed_error());
-        }
         let args = StepArgs {
             env_ids: env_ids.as_ref(),
             actions: &actions,
@@ -162,75 +289,106 @@ impl NativeStream {
             q_values: q_values.as_ref().zip(next_q_values.as_ref()),
             scores: score_rows.as_ref().zip(score_values.as_ref()),
         };
-        inner.prepared.fill(py, inner.shape, &args)?;
-        let b = inner.prepared.len();
-        if b == 0 {
-            // Nothing is sent; pending abandons wait for a batch with entries.
-            return Ok(answer_arrays(py, Answer::default(), inner.pool_version));
-        }
-        inner.tracker.take_abandons(&mut inner.prepared.abandon);
-        let result = {
-            let Inner {
-                transport,
-                tracker,
-                prepared,
-                ..
-            } = &mut *inner;
-            py.detach(|| transport.step(prepared, tracker))
-        };
-        let answer = match result {
-            Ok(answer) => answer,
-            Err(StepError::Interrupted(interrupt)) => {
-                inner.closed = true;
-                inner.tracker.discard_episodes();
-                return Err(interrupt);
-            }
-            Err(StepError::Status(err)) => {
-                if err.code() == Code::InvalidArgument {
-                    // Rejected, nothing applied: the stream goes on (re-opened if remote);
-                    // the abandons travel with the next batch.
-                    let sent = std::mem::take(&mut inner.prepared.abandon);
-                    inner.tracker.restore_abandons(&sent);
-                    if let Transport::Remote(r) = &inner.transport {
-                        if r.broken() {
-                            inner.closed = true;
-                            inner.tracker.discard_episodes();
-                        }
-                    }
-                } else {
-                    inner.closed = true;
-                    inner.transport.close();
-                    inner.tracker.discard_episodes();
-                }
-                return Err(crate::status_error(&err));
-            }
-        };
-        if answer.consistent_len() != Some(b) {
-            inner.closed = true;
-            inner.transport.close();
-            return Err(status(
-                Code::Internal,
-                format!(
-                    "the server answered {} entries for a batch of {b}",
-                    answer.rewards.len()
-                ),
-            ));
-        }
-        if let Some((env, step)) = inner.tracker.ignored_abandon(&inner.prepared, &answer) {
-            inner.closed = true;
-            inner.transport.close();
-            return Err(status(
-                Code::Unimplemented,
-                format!(
-                    "the server ignored StepBatch.abandon (SPEC v1.1 §12): env {env} went on \
-                     with its abandoned episode at step {step}; upgrade the server"
-                ),
-            ));
-        }
-        inner.tracker.record(&inner.prepared, &answer);
-        let pool_version = answer.pool_version;
-        inner.pool_version = pool_version;
+        let answer = guard.run(py, &args)?;
+        let pool_version = guard.pool_version;
         Ok(answer_arrays(py, answer, pool_version))
+    }
+
+    /// One vector step of `tamrm.sb3.ShapedVecEnv` on which no environment ended (its
+    /// common case), in one call: the critic `critic` (if any) on `obs_before` and
+    /// `obs_after` in one batch (V(s) and V(s'), or Q with `q_values`), the step as
+    /// `step` shapes it, R_meta, r(t), F, knn_active and R added into the rows of `sums`
+    /// (`(5, num_envs)`, per env), the six info keys written into the dicts of `infos`,
+    /// and R_meta returned as float32. Every check and error is `step`'s.
+    #[pyo3(signature = (actions, rewards, critic, q_values, obs_before, obs_after, infos, sums))]
+    #[allow(clippy::too_many_arguments)]
+    fn step_vec<'py>(
+        &self,
+        py: Python<'py>,
+        actions: Bound<'py, PyAny>,
+        rewards: Bound<'py, PyAny>,
+        critic: Option<Bound<'py, Mlp>>,
+        q_values: bool,
+        obs_before: Option<Bound<'py, PyArray2<f32>>>,
+        obs_after: Option<Bound<'py, PyArray2<f32>>>,
+        infos: Bound<'py, PyList>,
+        sums: Bound<'py, PyArray2<f64>>,
+    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        let mut guard = self.lock();
+        let n = guard.shape.num_envs;
+        if infos.len() != n || sums.shape() != [SUMS, n] {
+            return Err(PyValueError::new_err(format!(
+                "step_vec: {} infos and sums of shape {:?} for {n} envs",
+                infos.len(),
+                sums.shape()
+            )));
+        }
+        let values = match (&critic, &obs_before, &obs_after) {
+            (Some(mlp), Some(before), Some(after)) => {
+                Some(critic_values(py, mlp.get(), before, after, n, q_values)?)
+            }
+            (None, None, None) => None,
+            _ => {
+                return Err(PyValueError::new_err(
+                    "step_vec: give the critic with both observation batches, or none",
+                ))
+            }
+        };
+        let (v, q) = match &values {
+            Some((a, b)) if q_values => (None, Some((a, b))),
+            Some((a, b)) => (Some((a, b)), None),
+            None => (None, None),
+        };
+        let args = StepArgs {
+            env_ids: None,
+            actions: &actions,
+            rewards: &rewards,
+            terminated: None,
+            truncated: None,
+            values: v,
+            q_values: q,
+            scores: None,
+        };
+        let answer = guard.run(py, &args)?;
+        if answer.rewards.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "step_vec: {} rewards for {n} envs",
+                answer.rewards.len()
+            )));
+        }
+        let env_rewards = &guard.prepared.rewards;
+        // SAFETY: the GIL is held and no Python code runs while the slice lives.
+        let Ok(acc) = (unsafe { sums.as_slice_mut() }) else {
+            return Err(PyValueError::new_err("step_vec: sums must be C-contiguous"));
+        };
+        let active = |i: usize| if answer.knn_active[i] { 1.0 } else { 0.0 };
+        for i in 0..n {
+            acc[i] += answer.rewards[i];
+            acc[n + i] += answer.knn_rewards[i];
+            acc[2 * n + i] += answer.potentials[i];
+            acc[3 * n + i] += active(i);
+            acc[4 * n + i] += env_rewards[i];
+        }
+        let pool_version = answer.pool_version;
+        for (i, info) in infos.iter().enumerate() {
+            let info = info.cast::<PyDict>()?;
+            info.set_item(intern!(py, "original_reward"), env_rewards[i])?;
+            info.set_item(intern!(py, "knn_reward"), answer.knn_rewards[i])?;
+            info.set_item(intern!(py, "potential"), answer.potentials[i])?;
+            info.set_item(intern!(py, "shaping_step"), answer.steps[i])?;
+            info.set_item(intern!(py, "knn_active"), answer.knn_active[i])?;
+            info.set_item(intern!(py, "pool_version"), pool_version)?;
+        }
+        Ok(PyArray1::from_iter(
+            py,
+            answer.rewards.iter().map(|&r| r as f32),
+        ))
+    }
+
+    /// The task's pool version after the last answered batch (or at open).
+    #[getter]
+    fn pool_version(&self) -> u64 {
+        self.lock().pool_version
     }
 
     /// Drops the current episodes of `envs` (sent with the next batch that has entries).

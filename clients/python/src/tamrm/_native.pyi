@@ -35,6 +35,19 @@ class NativeStream:
         score_rows: npt.NDArray[np.int64] | None,
         score_values: npt.NDArray[np.float64] | None,
     ) -> _Answer: ...
+    def step_vec(
+        self,
+        actions: npt.NDArray[np.generic],
+        rewards: npt.NDArray[np.floating],
+        critic: Mlp | None,
+        q_values: bool,
+        obs_before: npt.NDArray[np.float32] | None,
+        obs_after: npt.NDArray[np.float32] | None,
+        infos: list[dict[str, object]],
+        sums: npt.NDArray[np.float64],
+    ) -> npt.NDArray[np.float32]: ...
+    @property
+    def pool_version(self) -> int: ...
     def abandon(self, envs: list[int]) -> None: ...
     def episode_steps(self) -> npt.NDArray[np.int64]: ...
     def close(self) -> None: ...

@@ -12,8 +12,8 @@ session layer in-process).
 from __future__ import annotations
 
 import uuid
-from collections.abc import Mapping
-from typing import Any, Protocol
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -34,6 +34,7 @@ from tamrm._types import StepResult, Task, TaskConfig
 
 __all__ = ["Session", "Transport"]
 
+_T = TypeVar("_T")
 _I64 = np.dtype(np.int64)
 _F64 = np.dtype(np.float64)
 _F32 = np.dtype(np.float32)
@@ -114,7 +115,6 @@ class Session(Closing):
             raise from_native(exc) from None
         self.task = Task._from_pb(pb.Task.FromString(self._native.opened))
         self._config: TaskConfig = self.task.config
-        self._pool_version = int(self.task.stats.pool_version)
         self._all_rows = np.arange(self.num_envs, dtype=np.int64)
 
     def __deepcopy__(self, memo: dict[int, object]) -> Session:
@@ -141,7 +141,7 @@ class Session(Closing):
     @property
     def pool_version(self) -> int:
         """The task's pool version after the last answered batch (or at open)."""
-        return self._pool_version
+        return self._native.pool_version
 
     @property
     def episode_steps(self) -> npt.NDArray[np.int64]:
@@ -271,11 +271,17 @@ class Session(Closing):
             score_values = np.fromiter(scores.values(), dtype=np.float64, count=len(scores))
         if size == 0:
             # Nothing is sent; pending abandons wait for a batch with entries.
-            return StepResult._empty(self._pool_version)
+            return StepResult._empty(self._native.pool_version)
+        answer = self._call(
+            self._native.step, ids, act, rew, term, trunc, v, nv, q, nq, score_rows, score_values
+        )
+        parts, steps, active, pool_version = answer
+        return StepResult(parts[0], parts[1], parts[2], steps, active, pool_version, rows, parts)
+
+    def _call(self, method: Callable[..., _T], *args: Any) -> _T:
+        """A native step call, its failures turned into this session's errors."""
         try:
-            answer = self._native.step(
-                ids, act, rew, term, trunc, v, nv, q, nq, score_rows, score_values
-            )
+            return method(*args)
         except _native.StatusError as exc:
             err = from_native(exc)
             if self._native.closed:
@@ -284,9 +290,37 @@ class Session(Closing):
         except KeyboardInterrupt:
             self._error = SessionClosed(f"the session on task {self.task_id!r} was interrupted")
             raise
-        parts, steps, active, pool_version = answer
-        self._pool_version = pool_version
-        return StepResult(parts[0], parts[1], parts[2], steps, active, pool_version, rows, parts)
+
+    def _step_vec(
+        self,
+        actions: npt.NDArray[Any],
+        rewards: npt.NDArray[np.floating[Any]],
+        critic: _native.Mlp | None,
+        q_values: bool,
+        obs_before: npt.NDArray[np.float32] | None,
+        obs_after: npt.NDArray[np.float32] | None,
+        infos: list[dict[str, Any]],
+        sums: npt.NDArray[np.float64],
+    ) -> npt.NDArray[np.float32]:
+        """One full vector step in one native call (``tamrm.sb3.ShapedVecEnv``'s fast path).
+
+        Every env sends one entry, none ends its episode; ``critic`` (a native MLP) gives
+        the values of ``obs_before`` and ``obs_after``; the answer is added into
+        ``sums`` and written into ``infos``; returns R_meta as float32. Arguments are
+        the canonical arrays (the caller checks dtypes and shapes); errors as :meth:`step`.
+        """
+        self._check_open()
+        return self._call(
+            self._native.step_vec,
+            actions,
+            rewards,
+            critic,
+            q_values,
+            obs_before,
+            obs_after,
+            infos,
+            sums,
+        )
 
     def abandon(self, env_ids: npt.ArrayLike) -> None:
         """Drop the current episodes of ``env_ids`` without offering them to the pool.

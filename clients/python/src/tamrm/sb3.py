@@ -312,6 +312,12 @@ def _with_rows(obs: ObsBatch, infos: list[dict[str, Any]], rows: list[int]) -> O
     return out
 
 
+def _flat32(obs: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
+    """A batch of observations as the native critic's rows: C-ordered float32 ``(B, -1)``."""
+    x = np.asarray(obs, dtype=np.float32)
+    return np.ascontiguousarray(x.reshape(x.shape[0], -1))
+
+
 # Rows of ShapedVecEnv._acc: the sums of R_meta, r(t), F, knn_active (0/1) and R.
 _SUMS = 5
 
@@ -399,7 +405,15 @@ class ShapedVecEnv(VecEnvWrapper):
         self._ended = np.zeros(_SUMS, dtype=np.float64)
         self._taken = np.zeros((_SUMS, n), dtype=np.float64)
         self._env_steps = 0  # shaped since the last take_stats
-        self._pool_version = -1
+        # The fast path (_fast_step): the action dtypes it takes, the last observations
+        # as the critic's float32 rows; tests turn it off to compare with the general path.
+        self._action_dtypes = (
+            (np.dtype(np.int64),)
+            if config.discrete
+            else (np.dtype(np.float32), np.dtype(np.float64))
+        )
+        self._flat_obs: npt.NDArray[np.float32] | None = None
+        self._fast_path = True
 
     def env_is_wrapped(self, wrapper_class: type[Any], indices: Any = None) -> list[bool]:
         """Whether the sub-environments are wrapped in ``wrapper_class`` (SB3's query).
@@ -462,7 +476,7 @@ class ShapedVecEnv(VecEnvWrapper):
             cfg.alpha * knn,
             cfg.beta * potential,
             int(knn_active),
-            self._pool_version,
+            self.session.pool_version,
         )
 
     def _step_values(
@@ -525,6 +539,7 @@ class ShapedVecEnv(VecEnvWrapper):
         self._acc[:] = 0.0
         self._taken[:] = 0.0
         self._values = None
+        self._flat_obs = None
         in_progress = self.session.episodes_in_progress
         if in_progress.any():
             self.session.abandon(np.flatnonzero(in_progress))
@@ -541,9 +556,15 @@ class ShapedVecEnv(VecEnvWrapper):
     ) -> tuple[VecEnvObs, npt.NDArray[np.float32], npt.NDArray[np.bool_], list[dict[str, Any]]]:
         """Wait for the step, shape its rewards in one round trip and return them."""
         raw_obs, rewards, dones, infos = self.venv.step_wait()
-        obs = _obs_batch(raw_obs)
         dones = np.asarray(dones, dtype=np.bool_)
-        done_rows: list[int] = np.flatnonzero(dones).tolist() if dones.any() else []
+        any_done = bool(dones.any())
+        if not any_done and self._fast_path:
+            shaped = self._fast_step(raw_obs, rewards, infos)
+            if shaped is not None:
+                return raw_obs, shaped, dones, infos
+        obs = _obs_batch(raw_obs)
+        self._flat_obs = None
+        done_rows: list[int] = np.flatnonzero(dones).tolist() if any_done else []
         # None: no env ended (all false), one array fewer to check and send.
         terminated = truncated = None
         if done_rows:
@@ -579,7 +600,6 @@ class ShapedVecEnv(VecEnvWrapper):
         self._acc[:4] += parts
         self._acc[4] += rewards
         self._env_steps += self.num_envs
-        self._pool_version = result.pool_version
         for i in done_rows:
             self._end_episode(i, infos[i], int(result.steps[i]) + 1)
         # One conversion per column, not per entry (this loop runs every vector step).
@@ -602,6 +622,53 @@ class ShapedVecEnv(VecEnvWrapper):
             info["pool_version"] = pool_version
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
+
+    def _fast_step(
+        self, raw_obs: VecEnvObs, rewards: npt.NDArray[Any], infos: list[dict[str, Any]]
+    ) -> npt.NDArray[np.float32] | None:
+        """A step on which no env ended, in one native call; ``None``: take the general path.
+
+        It applies when the actions are the canonical array and the values, if any, come
+        from a native critic (:class:`ModelValueFn` with ``native``) on array
+        observations. V(s) is evaluated again with V(s') in one batch rather than taken
+        from the previous step: the same values (a row's value depends on that row and
+        the weights only), without the version check. The result is the general path's,
+        bit for bit (tested on whole training runs).
+        """
+        actions = self._actions
+        if not (
+            type(actions) is np.ndarray
+            and actions.dtype in self._action_dtypes
+            and actions.shape == self._action_shape
+        ):
+            return None
+        critic = before = after = None
+        q = False
+        value_fn = self.value_fn
+        if value_fn is not None:
+            if type(value_fn) is not ModelValueFn or not value_fn.fast:
+                return None
+            policy = value_fn.model.policy
+            native = value_fn._native_critic(policy)
+            if native is None or type(raw_obs) is not np.ndarray:
+                return None
+            before = self._flat_obs
+            if before is None:
+                if type(self._obs) is not np.ndarray:
+                    return None
+                before = _flat32(self._obs)
+            after = _flat32(raw_obs)
+            critic, q = native._mlp, hasattr(policy, "q_net")
+        if type(rewards) is not np.ndarray:
+            rewards = np.asarray(rewards, dtype=np.float64)
+        shaped = self.session._step_vec(
+            actions, rewards, critic, q, before, after, infos, self._acc
+        )
+        self._env_steps += self.num_envs
+        self._obs = _obs_batch(raw_obs)
+        self._flat_obs = after
+        self._values = None  # the general path's cache is not kept here
+        return shaped
 
     def _end_episode(self, i: int, info: dict[str, Any], length: int) -> None:
         """Put env ``i``'s finished episode into ``info["shaped_episode"]`` and the stats."""
