@@ -76,6 +76,9 @@ pub struct Episode {
     ms: Vec<u32>,
     /// The previous `ms` allocation, reused by the next sync.
     spare_ms: Vec<u32>,
+    /// The k-th smallest of `ms` at the last kNN step since the counts were last reset
+    /// or realigned: a lower bound on it now, which finds it faster (`knn_f_discrete`).
+    kth: Option<u32>,
 }
 
 /// Σ_{j<upto} δ(a_j, b_j) of two continuous action sequences, summed in j order (the
@@ -113,6 +116,7 @@ impl Episode {
             spare: Vec::new(),
             ms: Vec::new(),
             spare_ms: Vec::new(),
+            kth: None,
         }
     }
 
@@ -133,6 +137,7 @@ impl Episode {
             spare: Vec::new(),
             ms: Vec::new(),
             spare_ms: Vec::new(),
+            kth: None,
         }
     }
 
@@ -153,6 +158,8 @@ impl Episode {
                 prefix_mismatches(traj, recorded, upto)
             });
             self.spare_ms = std::mem::replace(&mut self.ms, ms);
+            // Realigned counts may be smaller than the remembered k-th one.
+            self.kth = None;
         } else {
             let mut dis = std::mem::take(&mut self.spare);
             realign(&self.seqs, &self.dis, pool, &mut dis, |traj| {
@@ -232,7 +239,15 @@ impl Episode {
         let knn_reward = if active {
             let k = cfg.k as usize;
             let f = if discrete {
-                knn_f_discrete(&self.ms, pool.xs(), pool.by_place(), k, scratch)
+                knn_f_discrete(
+                    &self.ms,
+                    pool.xs(),
+                    pool.by_place(),
+                    pool.place_of(),
+                    k,
+                    scratch,
+                    &mut self.kth,
+                )
             } else {
                 knn_f(&self.dis, pool.xs(), pool.seqs(), k, scratch)
             };
@@ -264,6 +279,7 @@ impl Episode {
             // Every distance of the empty prefix is 0; the seqs stay valid.
             self.dis.iter_mut().for_each(|d| *d = 0.0);
             self.ms.iter_mut().for_each(|m| *m = 0);
+            self.kth = None;
             Some(EpisodeEnd { actions, score })
         } else {
             None

@@ -47,6 +47,8 @@ pub struct Pool {
     /// The trajectories (indices) in the order x descending, then seq ascending (the
     /// order that breaks ties in P), so that a step need not sort by it.
     by_place: Vec<u32>,
+    /// The inverse of `by_place`: each trajectory's place in that order.
+    place_of: Vec<u32>,
     /// For a discrete pool, the actions laid out by step: row t holds every trajectory's
     /// action at t (in pool order), [`NO_ACTION`] where t ≥ L_i; `step_rows` rows. Empty
     /// (0 rows) if some trajectory is continuous or the padding would be too large.
@@ -71,6 +73,7 @@ impl Pool {
             xs: Vec::new(),
             l_min: 0,
             by_place: Vec::new(),
+            place_of: Vec::new(),
             by_step: Arc::from(Vec::new()),
             step_rows: 0,
             version: 0,
@@ -145,6 +148,10 @@ impl Pool {
                 .then_with(|| self.seqs[a].cmp(&self.seqs[b]))
         });
         self.by_place = idx.iter().map(|&i| i as u32).collect();
+        self.place_of = vec![0; idx.len()];
+        for (place, &i) in idx.iter().enumerate() {
+            self.place_of[i] = place as u32;
+        }
         self.build_by_step();
     }
 
@@ -267,6 +274,10 @@ impl Pool {
     /// The trajectories (indices) in the order x descending, then seq ascending.
     pub(crate) fn by_place(&self) -> &[u32] {
         &self.by_place
+    }
+    /// Each trajectory's place in [`Pool::by_place`], aligned with [`Pool::trajectories`].
+    pub(crate) fn place_of(&self) -> &[u32] {
+        &self.place_of
     }
     /// For a pool laid out by step ([`Pool::by_step`]): every trajectory's action at step
     /// `t` ([`NO_ACTION`] where t ≥ L_i), aligned with [`Pool::trajectories`]; `None` past
