@@ -92,15 +92,16 @@ fn prefix_distance(a: &ActionSeq, b: &ActionSeq, upto: usize) -> f64 {
 /// `max_trajectory_len` (a `u32`), so the count fits. A continuous `a` (never in a
 /// discrete task's pool) counts every step as a mismatch.
 fn prefix_mismatches(a: &ActionSeq, b: &[u32], upto: usize) -> u32 {
-    let count = match a {
+    match a {
+        // A u32 sum (it cannot overflow, see above): four lanes per vector, where a
+        // usize count has two.
         ActionSeq::Discrete(x) => x[..upto]
             .iter()
             .zip(&b[..upto])
-            .filter(|(p, q)| p != q)
-            .count(),
-        ActionSeq::Continuous { .. } => upto,
-    };
-    u32::try_from(count).unwrap_or(u32::MAX)
+            .map(|(p, q)| u32::from(p != q))
+            .sum(),
+        ActionSeq::Continuous { .. } => u32::try_from(upto).unwrap_or(u32::MAX),
+    }
 }
 
 impl Episode {
