@@ -276,6 +276,18 @@ impl Pool {
 
     /// Performs a planned change and increments the version.
     pub fn apply(&mut self, change: &PoolChange) {
+        self.apply_with(change, true);
+    }
+
+    /// [`Pool::apply`] without laying the pool out by step: the same pool, whose steps
+    /// read each trajectory's action from its own sequence. For a private copy that
+    /// serves a few steps (the rest of a batch after an episode end) before the store's
+    /// pool replaces it: laying out costs O(|D| × L_max).
+    pub fn apply_without_layout(&mut self, change: &PoolChange) {
+        self.apply_with(change, false);
+    }
+
+    fn apply_with(&mut self, change: &PoolChange, lay_out: bool) {
         match change {
             PoolChange::Insert {
                 trajectory,
@@ -297,17 +309,20 @@ impl Pool {
                 self.version += 1;
                 self.recompute_derived();
                 let old = std::mem::take(&mut self.by_step);
-                if last && removed.is_some() == replaces.is_some() {
+                if !lay_out {
+                    self.step_rows = 0;
+                } else if last && removed.is_some() == replaces.is_some() {
                     self.update_by_step(&old, old_n, self.step_rows, removed);
                 } else {
                     self.build_by_step();
                 }
-                return;
             }
-            PoolChange::Reset => self.trajectories.clear(),
+            PoolChange::Reset => {
+                self.trajectories.clear();
+                self.version += 1;
+                self.recompute();
+            }
         }
-        self.version += 1;
-        self.recompute();
     }
 
     /// |D| at most.
@@ -465,7 +480,20 @@ mod tests {
                 } as usize;
                 let actions = (0..len).map(|_| next(3) as u32).collect();
                 if let Some(c) = p.plan_offer(ActionSeq::Discrete(actions), next(50) as f64) {
+                    let mut unlaid = p.clone();
+                    unlaid.apply_without_layout(&c);
                     p.apply(&c);
+                    assert_eq!(
+                        (
+                            unlaid.version(),
+                            unlaid.seqs(),
+                            unlaid.lens(),
+                            unlaid.l_min()
+                        ),
+                        (p.version(), p.seqs(), p.lens(), p.l_min())
+                    );
+                    assert_eq!((unlaid.xs(), unlaid.by_place()), (p.xs(), p.by_place()));
+                    assert!(!unlaid.by_step() && unlaid.step_row(0).is_none());
                 }
                 if next(40) == 0 {
                     p.apply(&p.plan_reset());
