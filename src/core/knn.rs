@@ -145,13 +145,51 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
         .sum()
 }
 
-/// How many counting passes [`kth_from_hint`] tries before it gives up on a hint.
+/// How many counting passes [`kth_from_hint`] and [`kth_masks_from_hint`] try before
+/// they give up on a remembered k-th smallest count.
 const HINT_STEPS: u32 = 3;
 
 /// The number of counts below `v`.
 #[inline]
 fn count_below(ms: &[u32], v: u32) -> usize {
     ms.iter().fold(0u32, |c, &m| c + u32::from(m < v)) as usize
+}
+
+/// The counts that satisfy `pred`, as a bit set over their indices (`ms.len()` ≤ 64).
+/// In chunks of eight, which the compiler turns into vector compares.
+#[inline(always)]
+fn mask_where(ms: &[u32], pred: impl Fn(u32) -> bool) -> u64 {
+    let mut mask = 0u64;
+    let mut chunks = ms.chunks_exact(8);
+    for (c, chunk) in (&mut chunks).enumerate() {
+        let mut bits = 0u64;
+        for (j, &m) in chunk.iter().enumerate() {
+            bits |= u64::from(pred(m)) << j;
+        }
+        mask |= bits << (8 * c);
+    }
+    let base = ms.len() - chunks.remainder().len();
+    for (j, &m) in chunks.remainder().iter().enumerate() {
+        mask |= u64::from(pred(m)) << (base + j);
+    }
+    mask
+}
+
+/// 1/(2m), as `1.0 / d` computes it for d = 2m: from the table when it reaches m.
+#[inline(always)]
+fn inv_of(inv: &[f64], m: u32) -> f64 {
+    match inv.get(m as usize) {
+        Some(&v) => v,
+        None => 1.0 / (2.0 * f64::from(m)),
+    }
+}
+
+/// Extends the table of 1/(2m) to cover m < `need` (with room to grow).
+fn cover(inv: &mut Vec<f64>, need: usize) {
+    if inv.len() < need {
+        let from = inv.len();
+        inv.extend((from..need.max(2 * from)).map(|m| 1.0 / (2.0 * m as f64)));
+    }
 }
 
 /// The k-th smallest of `ms` (m*) and how many counts lie below it, searched upward from
@@ -175,6 +213,28 @@ fn kth_from_hint(ms: &[u32], k: usize, start: u32) -> Option<(u32, usize)> {
         }
         below = upto;
         at = next;
+    }
+    None
+}
+
+/// K's boundary as bit sets (`ms.len()` ≤ 64): m*, the counts below it, those at it,
+/// and how many lie below. See [`kth_from_hint`]: the same search, one bit set per pass.
+fn kth_masks_from_hint(ms: &[u32], k: usize, start: u32) -> Option<(u32, u64, u64, usize)> {
+    let mut below = mask_where(ms, |m| m < start);
+    let mut count = below.count_ones() as usize;
+    if count >= k {
+        return None;
+    }
+    let mut value = start;
+    for _ in 0..HINT_STEPS {
+        let at = mask_where(ms, |m| m == value);
+        let here = at.count_ones() as usize;
+        if count + here >= k {
+            return Some((value, below, at, count));
+        }
+        below |= at;
+        count += here;
+        value = value.checked_add(1)?;
     }
     None
 }
@@ -207,29 +267,21 @@ pub(crate) fn knn_f_discrete(
 ) -> f64 {
     let n = ms.len();
     debug_assert!(n > 0 && xs.len() == n && by_place.len() == n && place_of.len() == n && k > 0);
-    let (min_m, max_m) = ms
-        .iter()
-        .fold((u32::MAX, 0u32), |(lo, hi), &m| (lo.min(m), hi.max(m)));
     // P_i = num(m_i) / den: share = 1/exact for m = 0 with exact matches, else 1/d / Σ.
-    let (den, share) = if min_m == 0 {
-        let exact = ms.iter().filter(|&&m| m == 0).count();
-        (1.0, 1.0 / exact as f64)
+    let exact = ms.iter().fold(0u32, |c, &m| c + u32::from(m == 0));
+    let (den, share) = if exact > 0 {
+        (1.0, 1.0 / f64::from(exact))
     } else {
-        let inv = &mut scratch.inv;
-        let need = max_m as usize + 1;
-        if inv.len() < need {
-            let from = inv.len();
-            inv.extend((from..need).map(|m| 1.0 / (2.0 * m as f64)));
-        }
-        let total: f64 = ms.iter().map(|&m| inv[m as usize]).sum();
+        let inv = &scratch.inv;
+        let total: f64 = ms.iter().map(|&m| inv_of(inv, m)).sum();
         (total, 0.0)
     };
-    // The numerator of P for a count, as bits: no branch per entry.
-    let num = |inv: &[f64], m: u32| -> u64 {
-        if min_m == 0 {
-            share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0))
+    // The numerator of P for a count: no branch on the count.
+    let num = |inv: &[f64], m: u32| -> f64 {
+        if exact > 0 {
+            f64::from_bits(share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0)))
         } else {
-            inv[m as usize].to_bits()
+            inv_of(inv, m)
         }
     };
     if k >= n {
@@ -237,21 +289,26 @@ pub(crate) fn knn_f_discrete(
         return ms
             .iter()
             .zip(xs)
-            .map(|(&m, &xi)| xi * (f64::from_bits(num(inv, m)) / den))
+            .map(|(&m, &xi)| xi * (num(inv, m) / den))
             .sum();
     }
-    // The k-th smallest m (m*), and how many entries lie below it.
-    let (threshold, below) = match kth.and_then(|h| kth_from_hint(ms, k, h.max(min_m))) {
-        Some(found) => found,
-        None => kth_by_counting(ms, k, min_m, max_m, scratch),
-    };
-    *kth = Some(threshold);
     // Σ over K in pool order, dividing only the k members by the total. `knn_f` also
     // adds (x·P)·0 = +0.0 for every other entry (x ≥ +0.0 and P ≥ +0.0), which changes
     // no partial sum but an initial −0.0 into +0.0, and −0.0 + t = +0.0 + t for the
     // first member's t ≥ +0.0: the same sum.
     if n <= 64 {
-        let members = members_mask(ms, threshold, k - below, by_place, place_of);
+        let (threshold, below, at, count) = match kth.and_then(|h| kth_masks_from_hint(ms, k, h)) {
+            Some(found) => found,
+            None => {
+                let (threshold, count) = kth_by_counting(ms, k, scratch);
+                let below = mask_where(ms, |m| m < threshold);
+                let at = mask_where(ms, |m| m == threshold);
+                (threshold, below, at, count)
+            }
+        };
+        *kth = Some(threshold);
+        cover(&mut scratch.inv, threshold as usize + 64);
+        let members = members_mask(below, at, k - count, by_place, place_of);
         let inv = &scratch.inv;
         let mut rest = members;
         return std::iter::from_fn(|| {
@@ -261,9 +318,15 @@ pub(crate) fn knn_f_discrete(
                 i
             })
         })
-        .map(|i| xs[i] * (f64::from_bits(num(inv, ms[i])) / den))
+        .map(|i| xs[i] * (num(inv, ms[i]) / den))
         .sum();
     }
+    let (threshold, below) = match kth.and_then(|h| kth_from_hint(ms, k, h)) {
+        Some(found) => found,
+        None => kth_by_counting(ms, k, scratch),
+    };
+    *kth = Some(threshold);
+    cover(&mut scratch.inv, threshold as usize + 64);
     let pick = &mut scratch.pick;
     pick.clear();
     pick.extend(ms.iter().map(|&m| i32::from(m < threshold)));
@@ -287,20 +350,17 @@ pub(crate) fn knn_f_discrete(
     let inv = &scratch.inv;
     members[..c]
         .iter()
-        .map(|&i| xs[i as usize] * (f64::from_bits(num(inv, ms[i as usize])) / den))
+        .map(|&i| xs[i as usize] * (num(inv, ms[i as usize]) / den))
         .sum()
 }
 
-/// The k-th smallest of `ms` (whose range is `min_m..=max_m`) and how many lie below
-/// it: by counting when the range is small (distances of one episode move together),
-/// else by selection.
-fn kth_by_counting(
-    ms: &[u32],
-    k: usize,
-    min_m: u32,
-    max_m: u32,
-    scratch: &mut KnnScratch,
-) -> (u32, usize) {
+/// The k-th smallest of `ms` and how many lie below it: by counting when the range of
+/// the counts is small (distances of one episode move together), else by selection.
+fn kth_by_counting(ms: &[u32], k: usize, scratch: &mut KnnScratch) -> (u32, usize) {
+    let (min_m, max_m) = ms
+        .iter()
+        .fold((u32::MAX, 0u32), |(lo, hi), &m| (lo.min(m), hi.max(m)));
+    cover(&mut scratch.inv, max_m as usize + 1);
     let range = (max_m - min_m) as usize + 1;
     if range <= scratch.hist.len() {
         let hist = &mut scratch.hist[..range];
@@ -324,20 +384,9 @@ fn kth_by_counting(
     }
 }
 
-/// K as a bit set over pool indices (`ms.len()` ≤ 64): every entry below `threshold`,
-/// and the first `need` (≥ 1) of those at it in place order.
-fn members_mask(
-    ms: &[u32],
-    threshold: u32,
-    need: usize,
-    by_place: &[u32],
-    place_of: &[u32],
-) -> u64 {
-    let (mut below, mut at) = (0u64, 0u64);
-    for (i, &m) in ms.iter().enumerate() {
-        below |= u64::from(m < threshold) << i;
-        at |= u64::from(m == threshold) << i;
-    }
+/// K as a bit set over pool indices (at most 64): every entry of `below` (those below
+/// m*), and the first `need` (≥ 1) of `at` (those at m*) in place order.
+fn members_mask(below: u64, mut at: u64, need: usize, by_place: &[u32], place_of: &[u32]) -> u64 {
     if at.count_ones() as usize == need {
         return below | at;
     }
