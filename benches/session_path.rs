@@ -1,11 +1,13 @@
 //! The server's per-batch work without the transport, repeatably: the loadgen's
 //! throughput workload (`benches/loadgen.rs`) driven through the same code as a `Shape`
 //! stream minus HTTP/2 and tokio's scheduling, on one thread. For each batch: encode the
-//! client's `StepBatch`, decode it as the server does, shape it, encode the answer, decode
-//! it as the client does. `--echo` runs the echo floor's answer instead of the session.
+//! client's `StepBatch`, decode it as the server does (`service::codec`), shape it, encode
+//! the answer as the server does, decode it as the client does. `--echo` runs the echo
+//! floor's answer instead (prost both ways, as tonic's generated code), `--prost` the
+//! server with prost's codec.
 //!
 //! `cargo bench --bench session_path -- [--entries 256] [--streams 4] [--batches 2000]
-//! [--echo]` prints CPU nanoseconds per entry (thread CPU time). Under
+//! [--echo | --prost]` prints CPU nanoseconds per entry (thread CPU time). Under
 //! `valgrind --tool=callgrind` the instruction counts are the same on every run, whatever
 //! else the machine does: the way to compare two versions of the hot path on a shared
 //! machine (docs/benchmarks.md, "Server throughput").
@@ -18,6 +20,7 @@ use tamrm::core::{ActionSeq, TaskConfigInput};
 use tamrm::limits::Limits;
 use tamrm::proto;
 use tamrm::registry::{Registry, DEFAULT_TENANT};
+use tamrm::service::codec::{decode_request, encode_shaped};
 use tamrm::service::convert::{batch_view, shaped_proto};
 use tamrm::session::{OpenRequest, StreamSession};
 use tamrm::store::MemoryStore;
@@ -92,7 +95,15 @@ fn echo(b: proto::StepBatch) -> proto::ShapedBatch {
     }
 }
 
-async fn run(entries: usize, streams: usize, batches: usize, echo_only: bool) {
+/// Which code answers a batch.
+#[derive(Clone, Copy, PartialEq)]
+enum Side {
+    Server,
+    ServerProst,
+    Echo,
+}
+
+async fn run(entries: usize, streams: usize, batches: usize, side: Side) {
     let registry = Registry::open(Arc::new(MemoryStore::new()), Limits::default())
         .await
         .expect("registry")
@@ -135,7 +146,7 @@ async fn run(entries: usize, streams: usize, batches: usize, echo_only: bool) {
     }
     let mut scores = Vec::new();
     let mut wire = Vec::new();
-    let mut answer = Vec::new();
+    let mut answer = bytes::BytesMut::new();
     let mut cpu = Duration::ZERO;
     // A hash of every answer's bits: two versions of the hot path must print the same.
     let mut hash = 0xcbf2_9ce4_8422_2325u64;
@@ -143,20 +154,51 @@ async fn run(entries: usize, streams: usize, batches: usize, echo_only: bool) {
     for _ in 0..batches {
         for (session, rng) in sessions.iter_mut().zip(&mut rngs) {
             wire.clear();
-            step_batch(rng, entries).encode(&mut wire).expect("encode");
+            proto::ShapeRequest {
+                kind: Some(proto::shape_request::Kind::Steps(step_batch(rng, entries))),
+            }
+            .encode(&mut wire)
+            .expect("encode");
             let t0 = thread_cpu();
-            let batch = proto::StepBatch::decode(wire.as_slice()).expect("decode");
-            let shaped = if echo_only {
-                echo(batch)
-            } else {
-                let view = batch_view(&batch, &mut scores);
-                shaped_proto(&session.step(&view).await.expect("step"))
+            match side {
+                Side::Server => {
+                    let batch = match decode_request(&wire).expect("decode").kind {
+                        Some(proto::shape_request::Kind::Steps(b)) => b,
+                        _ => unreachable!("a batch"),
+                    };
+                    let view = batch_view(&batch, &mut scores);
+                    encode_shaped(&session.step(&view).await.expect("step"), &mut answer);
+                }
+                Side::ServerProst | Side::Echo => {
+                    let batch = match proto::ShapeRequest::decode(wire.as_slice())
+                        .expect("decode")
+                        .kind
+                    {
+                        Some(proto::shape_request::Kind::Steps(b)) => b,
+                        _ => unreachable!("a batch"),
+                    };
+                    let shaped = if side == Side::Echo {
+                        echo(batch)
+                    } else {
+                        let view = batch_view(&batch, &mut scores);
+                        shaped_proto(&session.step(&view).await.expect("step"))
+                    };
+                    proto::ShapeResponse {
+                        kind: Some(proto::shape_response::Kind::Shaped(shaped)),
+                    }
+                    .encode(&mut answer)
+                    .expect("encode");
+                }
+            }
+            cpu += thread_cpu() - t0;
+            let back = match proto::ShapeResponse::decode(&answer[..])
+                .expect("decode")
+                .kind
+            {
+                Some(proto::shape_response::Kind::Shaped(b)) => b,
+                _ => unreachable!("an answer"),
             };
             answer.clear();
-            shaped.encode(&mut answer).expect("encode");
-            drop(shaped);
-            cpu += thread_cpu() - t0;
-            let back = proto::ShapedBatch::decode(answer.as_slice()).expect("decode");
             for (((r, kr), p), (s, a)) in back
                 .rewards
                 .iter()
@@ -175,7 +217,11 @@ async fn run(entries: usize, streams: usize, batches: usize, echo_only: bool) {
     let n = (entries * streams * batches) as f64;
     println!(
         "{}: {entries} entries x {streams} streams x {batches} batches: {:.1} ns CPU per entry (answers' hash {hash:016x})",
-        if echo_only { "echo" } else { "server" },
+        match side {
+            Side::Server => "server",
+            Side::ServerProst => "server (prost codec)",
+            Side::Echo => "echo",
+        },
         cpu.as_secs_f64() * 1e9 / n,
     );
 }
@@ -185,10 +231,16 @@ fn main() {
     let entries = arg(&args, "--entries").unwrap_or(256);
     let streams = arg(&args, "--streams").unwrap_or(4);
     let batches = arg(&args, "--batches").unwrap_or(2000);
-    let echo_only = args.iter().any(|a| a == "--echo");
+    let side = if args.iter().any(|a| a == "--echo") {
+        Side::Echo
+    } else if args.iter().any(|a| a == "--prost") {
+        Side::ServerProst
+    } else {
+        Side::Server
+    };
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .expect("runtime");
-    rt.block_on(run(entries, streams, batches, echo_only));
+    rt.block_on(run(entries, streams, batches, side));
 }
