@@ -1,6 +1,7 @@
 //! The fuzz harness (docs/fuzzing.md): the real `tamrm.v1.Shaping` service, as the server
-//! assembles it (the generated `ShapingServer`, its message size limits and the status
-//! remapping of `tamrm::service::status`), driven in-process with raw gRPC frames through
+//! assembles it (`ShapingRoutes`: the Shape stream's codec and the generated
+//! `ShapingServer`, their message size limits, and the status remapping of
+//! `tamrm::service::status`), driven in-process with raw gRPC frames through
 //! `tower::Service::call`, against a live registry; and the checks made after every
 //! message:
 //!
@@ -22,11 +23,10 @@ use http_body_util::BodyExt;
 use prost::Message;
 use tamrm::core::{ActionSeq, ActionSpace, Pool};
 use tamrm::limits::Limits;
-use tamrm::proto::shaping_server::ShapingServer;
 use tamrm::proto::{self, shape_response, ShapeResponse};
 use tamrm::registry::{Registry, DEFAULT_TENANT};
 use tamrm::service::status::remap_response_headers;
-use tamrm::service::ShapingService;
+use tamrm::service::{ShapingRoutes, ShapingService};
 use tamrm::store::{MemoryStore, Store};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -102,7 +102,7 @@ pub fn runtime() -> &'static tokio::runtime::Runtime {
 #[derive(Clone)]
 pub struct Harness {
     pub registry: Arc<Registry>,
-    svc: ShapingServer<ShapingService>,
+    svc: ShapingRoutes,
     /// The last version seen per task (a version never goes back).
     seen: HashMap<String, u64>,
 }
@@ -222,9 +222,7 @@ impl Harness {
             .expect("the registry opens");
         let registry = Arc::new(registry);
         let service = ShapingService::new(registry.clone(), CancellationToken::new());
-        let svc = ShapingServer::new(service)
-            .max_decoding_message_size(limits.max_message_bytes)
-            .max_encoding_message_size(limits.max_message_bytes);
+        let svc = ShapingRoutes::new(service, limits.max_message_bytes);
         Harness {
             registry,
             svc,

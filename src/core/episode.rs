@@ -76,6 +76,9 @@ pub struct Episode {
     ms: Vec<u32>,
     /// The previous `ms` allocation, reused by the next sync.
     spare_ms: Vec<u32>,
+    /// The k-th smallest of `ms` at the last kNN step since the counts were last reset
+    /// or realigned: a lower bound on it now, which finds it faster (`knn_f_discrete`).
+    kth: Option<u32>,
 }
 
 /// Σ_{j<upto} δ(a_j, b_j) of two continuous action sequences, summed in j order (the
@@ -89,15 +92,16 @@ fn prefix_distance(a: &ActionSeq, b: &ActionSeq, upto: usize) -> f64 {
 /// `max_trajectory_len` (a `u32`), so the count fits. A continuous `a` (never in a
 /// discrete task's pool) counts every step as a mismatch.
 fn prefix_mismatches(a: &ActionSeq, b: &[u32], upto: usize) -> u32 {
-    let count = match a {
+    match a {
+        // A u32 sum (it cannot overflow, see above): four lanes per vector, where a
+        // usize count has two.
         ActionSeq::Discrete(x) => x[..upto]
             .iter()
             .zip(&b[..upto])
-            .filter(|(p, q)| p != q)
-            .count(),
-        ActionSeq::Continuous { .. } => upto,
-    };
-    u32::try_from(count).unwrap_or(u32::MAX)
+            .map(|(p, q)| u32::from(p != q))
+            .sum(),
+        ActionSeq::Continuous { .. } => u32::try_from(upto).unwrap_or(u32::MAX),
+    }
 }
 
 impl Episode {
@@ -113,6 +117,7 @@ impl Episode {
             spare: Vec::new(),
             ms: Vec::new(),
             spare_ms: Vec::new(),
+            kth: None,
         }
     }
 
@@ -133,6 +138,7 @@ impl Episode {
             spare: Vec::new(),
             ms: Vec::new(),
             spare_ms: Vec::new(),
+            kth: None,
         }
     }
 
@@ -153,6 +159,8 @@ impl Episode {
                 prefix_mismatches(traj, recorded, upto)
             });
             self.spare_ms = std::mem::replace(&mut self.ms, ms);
+            // Realigned counts may be smaller than the remembered k-th one.
+            self.kth = None;
         } else {
             let mut dis = std::mem::take(&mut self.spare);
             realign(&self.seqs, &self.dis, pool, &mut dis, |traj| {
@@ -232,7 +240,15 @@ impl Episode {
         let knn_reward = if active {
             let k = cfg.k as usize;
             let f = if discrete {
-                knn_f_discrete(&self.ms, pool.xs(), pool.by_place(), k, scratch)
+                knn_f_discrete(
+                    &self.ms,
+                    pool.xs(),
+                    pool.by_place(),
+                    pool.place_of(),
+                    k,
+                    scratch,
+                    &mut self.kth,
+                )
             } else {
                 knn_f(&self.dis, pool.xs(), pool.seqs(), k, scratch)
             };
@@ -264,6 +280,7 @@ impl Episode {
             // Every distance of the empty prefix is 0; the seqs stay valid.
             self.dis.iter_mut().for_each(|d| *d = 0.0);
             self.ms.iter_mut().for_each(|m| *m = 0);
+            self.kth = None;
             Some(EpisodeEnd { actions, score })
         } else {
             None

@@ -145,17 +145,114 @@ pub fn knn_f(dis: &[f64], xs: &[f64], seqs: &[u64], k: usize, scratch: &mut KnnS
         .sum()
 }
 
+/// How many counting passes [`kth_from_hint`] and [`kth_masks_from_hint`] try before
+/// they give up on a remembered k-th smallest count.
+const HINT_STEPS: u32 = 3;
+
+/// The number of counts below `v`.
+#[inline]
+fn count_below(ms: &[u32], v: u32) -> usize {
+    ms.iter().fold(0u32, |c, &m| c + u32::from(m < v)) as usize
+}
+
+/// The counts that satisfy `pred`, as a bit set over their indices (`ms.len()` ≤ 64).
+/// In chunks of eight, which the compiler turns into vector compares.
+#[inline(always)]
+fn mask_where(ms: &[u32], pred: impl Fn(u32) -> bool) -> u64 {
+    let mut mask = 0u64;
+    let mut chunks = ms.chunks_exact(8);
+    for (c, chunk) in (&mut chunks).enumerate() {
+        let mut bits = 0u64;
+        for (j, &m) in chunk.iter().enumerate() {
+            bits |= u64::from(pred(m)) << j;
+        }
+        mask |= bits << (8 * c);
+    }
+    let base = ms.len() - chunks.remainder().len();
+    for (j, &m) in chunks.remainder().iter().enumerate() {
+        mask |= u64::from(pred(m)) << (base + j);
+    }
+    mask
+}
+
+/// 1/(2m), as `1.0 / d` computes it for d = 2m: from the table when it reaches m.
+#[inline(always)]
+fn inv_of(inv: &[f64], m: u32) -> f64 {
+    match inv.get(m as usize) {
+        Some(&v) => v,
+        None => 1.0 / (2.0 * f64::from(m)),
+    }
+}
+
+/// Extends the table of 1/(2m) to cover m < `need` (with room to grow).
+fn cover(inv: &mut Vec<f64>, need: usize) {
+    if inv.len() < need {
+        let from = inv.len();
+        inv.extend((from..need.max(2 * from)).map(|m| 1.0 / (2.0 * m as f64)));
+    }
+}
+
+/// The k-th smallest of `ms` (m*) and how many counts lie below it, searched upward from
+/// `start` when that is a lower bound on m*: `None` if it is not (more than k − 1 counts
+/// below it), or if m* is more than [`HINT_STEPS`] − 1 above it.
+///
+/// One episode's counts only grow (by 0 or 1 per step), so the k-th smallest of a step is
+/// at least the previous step's, and usually equal to it or one more: one or two
+/// counting passes instead of a histogram. The check makes a stale `start` harmless.
+fn kth_from_hint(ms: &[u32], k: usize, start: u32) -> Option<(u32, usize)> {
+    let mut below = count_below(ms, start);
+    if below >= k {
+        return None;
+    }
+    let mut at = start;
+    for _ in 0..HINT_STEPS {
+        let next = at.checked_add(1)?;
+        let upto = count_below(ms, next);
+        if upto >= k {
+            return Some((at, below));
+        }
+        below = upto;
+        at = next;
+    }
+    None
+}
+
+/// K's boundary as bit sets (`ms.len()` ≤ 64): m*, the counts below it, those at it,
+/// and how many lie below. See [`kth_from_hint`]: the same search, one bit set per pass.
+fn kth_masks_from_hint(ms: &[u32], k: usize, start: u32) -> Option<(u32, u64, u64, usize)> {
+    let mut below = mask_where(ms, |m| m < start);
+    let mut count = below.count_ones() as usize;
+    if count >= k {
+        return None;
+    }
+    let mut value = start;
+    for _ in 0..HINT_STEPS {
+        let at = mask_where(ms, |m| m == value);
+        let here = at.count_ones() as usize;
+        if count + here >= k {
+            return Some((value, below, at, count));
+        }
+        below |= at;
+        count += here;
+        value = value.checked_add(1)?;
+    }
+    None
+}
+
 /// [`knn_f`] for discrete distances dis_i = 2·`ms[i]` (`ms` the mismatch counts), with
-/// `by_place` the entries in the order x descending, then seq ascending
-/// ([`crate::core::Pool`] keeps it): exactly `knn_f(2·ms, xs, seqs, k)`, bit for bit.
+/// `by_place` the entries in the order x descending, then seq ascending and `place_of`
+/// its inverse ([`crate::core::Pool`] keeps both): exactly `knn_f(2·ms, xs, seqs, k)`,
+/// bit for bit. `kth` is the k-th smallest count of this episode's previous call (or
+/// `None`); it is updated to this call's, and only speeds up finding it.
 ///
 /// Why the same K: for distinct even integers d < d' < 2^33, 1/d and 1/d' differ by a
 /// factor ≥ 1 + 2^-32, far above rounding, so P = (1/d)/Σ orders entries exactly as d
 /// does, and equal d give equal P. With exact matches, P is `share` for d = 0 and 0
 /// otherwise: ordering by d picks the same d = 0 entries (ties by place), and the P = 0
 /// entries of K add +0.0 whichever they are. So K is the first `k` entries by
-/// (m ascending, place ascending): every entry below the k-th smallest m, found by
-/// counting over the (small) range of m, plus the first of those at it in place order.
+/// (m ascending, place ascending): every entry below the k-th smallest m (m*), plus the
+/// first of those at m* in place order. m* is found from the previous step's (see
+/// [`kth_from_hint`]), else by counting over the (small) range of m.
 /// 1/d comes from a table (the bits of `1.0 / d`); the total sums the same terms in the
 /// same order as `knn_f`; only the k members of K are divided by it and summed (in pool
 /// order; the +0.0 terms `knn_f` adds for the others change nothing, see below).
@@ -163,48 +260,109 @@ pub(crate) fn knn_f_discrete(
     ms: &[u32],
     xs: &[f64],
     by_place: &[u32],
+    place_of: &[u32],
     k: usize,
     scratch: &mut KnnScratch,
+    kth: &mut Option<u32>,
 ) -> f64 {
     let n = ms.len();
-    debug_assert!(n > 0 && xs.len() == n && by_place.len() == n && k > 0);
-    let (min_m, max_m) = ms
-        .iter()
-        .fold((u32::MAX, 0u32), |(lo, hi), &m| (lo.min(m), hi.max(m)));
+    debug_assert!(n > 0 && xs.len() == n && by_place.len() == n && place_of.len() == n && k > 0);
     // P_i = num(m_i) / den: share = 1/exact for m = 0 with exact matches, else 1/d / Σ.
-    let (den, share) = if min_m == 0 {
-        let exact = ms.iter().filter(|&&m| m == 0).count();
-        (1.0, 1.0 / exact as f64)
+    let exact = ms.iter().fold(0u32, |c, &m| c + u32::from(m == 0));
+    let (den, share) = if exact > 0 {
+        (1.0, 1.0 / f64::from(exact))
     } else {
-        let inv = &mut scratch.inv;
-        let need = max_m as usize + 1;
-        if inv.len() < need {
-            let from = inv.len();
-            inv.extend((from..need).map(|m| 1.0 / (2.0 * m as f64)));
-        }
-        let total: f64 = ms.iter().map(|&m| inv[m as usize]).sum();
+        let inv = &scratch.inv;
+        let total: f64 = ms.iter().map(|&m| inv_of(inv, m)).sum();
         (total, 0.0)
     };
-    let inv = &scratch.inv;
-    // The numerator of P for a count, as bits: no branch per entry.
-    let num = |m: u32| -> u64 {
-        if min_m == 0 {
-            share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0))
+    // The numerator of P for a count: no branch on the count.
+    let num = |inv: &[f64], m: u32| -> f64 {
+        if exact > 0 {
+            f64::from_bits(share.to_bits() & 0u64.wrapping_sub(u64::from(m == 0)))
         } else {
-            inv[m as usize].to_bits()
+            inv_of(inv, m)
         }
     };
     if k >= n {
+        let inv = &scratch.inv;
         return ms
             .iter()
             .zip(xs)
-            .map(|(&m, &xi)| xi * (f64::from_bits(num(m)) / den))
+            .map(|(&m, &xi)| xi * (num(inv, m) / den))
             .sum();
     }
-    // The k-th smallest m (m*), and how many entries lie below it: by counting when the
-    // range of m is small (distances of one episode move together), else by selection.
+    // Σ over K in pool order, dividing only the k members by the total. `knn_f` also
+    // adds (x·P)·0 = +0.0 for every other entry (x ≥ +0.0 and P ≥ +0.0), which changes
+    // no partial sum but an initial −0.0 into +0.0, and −0.0 + t = +0.0 + t for the
+    // first member's t ≥ +0.0: the same sum.
+    if n <= 64 {
+        let (threshold, below, at, count) = match kth.and_then(|h| kth_masks_from_hint(ms, k, h)) {
+            Some(found) => found,
+            None => {
+                let (threshold, count) = kth_by_counting(ms, k, scratch);
+                let below = mask_where(ms, |m| m < threshold);
+                let at = mask_where(ms, |m| m == threshold);
+                (threshold, below, at, count)
+            }
+        };
+        *kth = Some(threshold);
+        cover(&mut scratch.inv, threshold as usize + 64);
+        let members = members_mask(below, at, k - count, by_place, place_of);
+        let inv = &scratch.inv;
+        let mut rest = members;
+        return std::iter::from_fn(|| {
+            (rest != 0).then(|| {
+                let i = rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                i
+            })
+        })
+        .map(|i| xs[i] * (num(inv, ms[i]) / den))
+        .sum();
+    }
+    let (threshold, below) = match kth.and_then(|h| kth_from_hint(ms, k, h)) {
+        Some(found) => found,
+        None => kth_by_counting(ms, k, scratch),
+    };
+    *kth = Some(threshold);
+    cover(&mut scratch.inv, threshold as usize + 64);
+    let pick = &mut scratch.pick;
+    pick.clear();
+    pick.extend(ms.iter().map(|&m| i32::from(m < threshold)));
+    // Of the entries at m*, the k − below first in place order (no branch on m).
+    let mut need = k - below;
+    for &i in by_place {
+        let i = i as usize;
+        let take = (ms[i] == threshold) & (need > 0);
+        pick[i] |= i32::from(take);
+        need -= usize::from(take);
+    }
+    // The members, in pool order, by a branch-free compaction.
+    let members = &mut scratch.members;
+    members.clear();
+    members.resize(n, 0);
+    let mut c = 0;
+    for (i, &picked) in pick.iter().enumerate() {
+        members[c] = i as u32;
+        c += usize::from(picked != 0);
+    }
+    let inv = &scratch.inv;
+    members[..c]
+        .iter()
+        .map(|&i| xs[i as usize] * (num(inv, ms[i as usize]) / den))
+        .sum()
+}
+
+/// The k-th smallest of `ms` and how many lie below it: by counting when the range of
+/// the counts is small (distances of one episode move together), else by selection.
+fn kth_by_counting(ms: &[u32], k: usize, scratch: &mut KnnScratch) -> (u32, usize) {
+    let (min_m, max_m) = ms
+        .iter()
+        .fold((u32::MAX, 0u32), |(lo, hi), &m| (lo.min(m), hi.max(m)));
+    cover(&mut scratch.inv, max_m as usize + 1);
     let range = (max_m - min_m) as usize + 1;
-    let (threshold, below) = if range <= scratch.hist.len() {
+    if range <= scratch.hist.len() {
         let hist = &mut scratch.hist[..range];
         hist.fill(0);
         for &m in ms {
@@ -222,35 +380,30 @@ pub(crate) fn knn_f_discrete(
         sel.clear();
         sel.extend_from_slice(ms);
         let (_, &mut threshold, _) = sel.select_nth_unstable(k - 1);
-        (threshold, ms.iter().filter(|&&m| m < threshold).count())
-    };
-    let pick = &mut scratch.pick;
-    pick.clear();
-    pick.extend(ms.iter().map(|&m| i32::from(m < threshold)));
-    // Of the entries at m*, the k − below first in place order (no branch on m).
-    let mut need = k - below;
-    for &i in by_place {
-        let i = i as usize;
-        let take = (ms[i] == threshold) & (need > 0);
-        pick[i] |= i32::from(take);
-        need -= usize::from(take);
+        (threshold, count_below(ms, threshold))
     }
-    // Σ over K in pool order: the members, in pool order, by a branch-free compaction,
-    // then k divisions. `knn_f` also adds (x·P)·0 = +0.0 for every other entry (x ≥ +0.0
-    // and P ≥ +0.0), which changes no partial sum but an initial −0.0 into +0.0, and
-    // −0.0 + t = +0.0 + t for the first member's t ≥ +0.0: the same sum.
-    let members = &mut scratch.members;
-    members.clear();
-    members.resize(n, 0);
-    let mut c = 0;
-    for (i, &picked) in pick.iter().enumerate() {
-        members[c] = i as u32;
-        c += usize::from(picked != 0);
+}
+
+/// K as a bit set over pool indices (at most 64): every entry of `below` (those below
+/// m*), and the first `need` (≥ 1) of `at` (those at m*) in place order.
+fn members_mask(below: u64, mut at: u64, need: usize, by_place: &[u32], place_of: &[u32]) -> u64 {
+    if at.count_ones() as usize == need {
+        return below | at;
     }
-    members[..c]
-        .iter()
-        .map(|&i| xs[i as usize] * (f64::from_bits(num(ms[i as usize])) / den))
-        .sum()
+    // The places of the entries at m*, the `need` lowest of them, back to pool indices.
+    let mut places = 0u64;
+    while at != 0 {
+        let i = at.trailing_zeros() as usize;
+        at &= at - 1;
+        places |= 1 << place_of[i];
+    }
+    let mut members = below;
+    for _ in 0..need {
+        let p = places.trailing_zeros() as usize;
+        places &= places.wrapping_sub(1);
+        members |= 1 << by_place[p];
+    }
+    members
 }
 
 #[cfg(test)]
@@ -328,7 +481,8 @@ mod tests {
         let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
         let mut scratch = KnnScratch::default();
         for round in 0..3000 {
-            let n = 1 + next(40) as usize;
+            // Pools of up to 64 entries (K as a bit set) and larger ones.
+            let n = 1 + next(if round % 5 == 4 { 150 } else { 64 }) as usize;
             let spread = [3, 50, 200, 3000][round % 4];
             let mut ms: Vec<u32> = (0..n).map(|_| next(spread) as u32).collect();
             let xs: Vec<f64> = (0..n).map(|_| next(4) as f64 / 3.0).collect();
@@ -339,15 +493,36 @@ mod tests {
             let mut idx: Vec<usize> = (0..n).collect();
             idx.sort_by(|&a, &b| xs[b].total_cmp(&xs[a]).then(seqs[a].cmp(&seqs[b])));
             let by_place: Vec<u32> = idx.iter().map(|&i| i as u32).collect();
-            // A few steps of one episode: distances move by 0 or 2, the order is kept.
-            for _ in 0..4 {
-                for k in [1, n / 2 + 1, n.saturating_sub(1).max(1), n] {
-                    let got = knn_f_discrete(&ms[..n], &xs[..n], &by_place, k, &mut scratch);
+            let mut place_of = vec![0u32; n];
+            for (p, &i) in by_place.iter().enumerate() {
+                place_of[i as usize] = p as u32;
+            }
+            let ks = [1, n / 2 + 1, n.saturating_sub(1).max(1), n];
+            // One remembered k-th count per k, as an episode keeps it.
+            let mut kths = [None; 4];
+            // Several steps of one episode: counts grow by 0 or 1 (now and then by more,
+            // as after steps without the kNN term), the order is kept.
+            for step in 0..8 {
+                for (&k, kth) in ks.iter().zip(&mut kths) {
+                    // Now and then a stale or wrong remembered count: it must not matter.
+                    if next(7) == 0 {
+                        *kth = Some(next(spread + 2) as u32);
+                    }
+                    let got = knn_f_discrete(
+                        &ms[..n],
+                        &xs[..n],
+                        &by_place,
+                        &place_of,
+                        k,
+                        &mut scratch,
+                        kth,
+                    );
                     let dis: Vec<f64> = ms[..n].iter().map(|&m| 2.0 * f64::from(m)).collect();
                     let want = knn_f_by_sort(&dis, &xs[..n], &seqs, k);
                     assert_eq!(got.to_bits(), want.to_bits(), "n {n} k {k}");
                 }
-                ms.iter_mut().for_each(|m| *m += next(2) as u32);
+                let jump = if step % 4 == 3 { 4 } else { 2 };
+                ms.iter_mut().for_each(|m| *m += next(jump) as u32);
             }
         }
     }

@@ -47,10 +47,12 @@ pub struct Pool {
     /// The trajectories (indices) in the order x descending, then seq ascending (the
     /// order that breaks ties in P), so that a step need not sort by it.
     by_place: Vec<u32>,
+    /// The inverse of `by_place`: each trajectory's place in that order.
+    place_of: Vec<u32>,
     /// For a discrete pool, the actions laid out by step: row t holds every trajectory's
     /// action at t (in pool order), [`NO_ACTION`] where t ≥ L_i; `step_rows` rows. Empty
     /// (0 rows) if some trajectory is continuous or the padding would be too large.
-    by_step: Arc<[u32]>,
+    by_step: Arc<Vec<u32>>,
     step_rows: usize,
     version: u64,
     next_seq: u64,
@@ -71,7 +73,8 @@ impl Pool {
             xs: Vec::new(),
             l_min: 0,
             by_place: Vec::new(),
-            by_step: Arc::from(Vec::new()),
+            place_of: Vec::new(),
+            by_step: Arc::default(),
             step_rows: 0,
             version: 0,
             next_seq: 1,
@@ -119,6 +122,12 @@ impl Pool {
     }
 
     fn recompute(&mut self) {
+        self.recompute_derived();
+        self.build_by_step();
+    }
+
+    /// Everything derived from the trajectories but the by-step layout.
+    fn recompute_derived(&mut self) {
         self.seqs = self.trajectories.iter().map(|t| t.seq).collect();
         self.lens = self.trajectories.iter().map(|t| t.actions.len()).collect();
         self.l_min = self.lens.iter().copied().min().unwrap_or(0);
@@ -145,35 +154,84 @@ impl Pool {
                 .then_with(|| self.seqs[a].cmp(&self.seqs[b]))
         });
         self.by_place = idx.iter().map(|&i| i as u32).collect();
-        self.build_by_step();
+        self.place_of = vec![0; idx.len()];
+        for (place, &i) in idx.iter().enumerate() {
+            self.place_of[i] = place as u32;
+        }
     }
 
-    /// Lays the actions of a discrete pool out by step (see `by_step`), unless the pool
-    /// holds continuous actions or rows padded to the longest trajectory would take more
-    /// than twice the actions themselves (plus a little).
-    fn build_by_step(&mut self) {
+    /// The discrete trajectories' actions, if every trajectory is discrete and rows padded
+    /// to the longest one would take at most twice the actions themselves (plus a
+    /// little): the condition for laying the pool out by step.
+    fn step_columns(&self) -> Option<Vec<&[u32]>> {
         let n = self.trajectories.len();
         let l_max = self.lens.iter().copied().max().unwrap_or(0);
         let total: usize = self.lens.iter().sum();
-        let discrete = self
-            .trajectories
-            .iter()
-            .all(|t| matches!(t.actions, ActionSeq::Discrete(_)));
         let cells = n.saturating_mul(l_max);
-        if !discrete || n > u32::MAX as usize || cells > total.saturating_mul(2) + (1 << 16) {
-            self.by_step = Arc::from(Vec::new());
+        if n > u32::MAX as usize || cells > total.saturating_mul(2) + (1 << 16) {
+            return None;
+        }
+        self.trajectories
+            .iter()
+            .map(|t| match &t.actions {
+                ActionSeq::Discrete(v) => Some(v.as_slice()),
+                ActionSeq::Continuous { .. } => None,
+            })
+            .collect()
+    }
+
+    /// Lays the actions of a discrete pool out by step (see `by_step`), unless
+    /// [`Pool::step_columns`] says not to. Row by row: the writes are sequential.
+    fn build_by_step(&mut self) {
+        let Some(cols) = self.step_columns() else {
+            self.by_step = Arc::default();
             self.step_rows = 0;
             return;
+        };
+        let l_max = self.lens.iter().copied().max().unwrap_or(0);
+        let mut rows = Vec::with_capacity(cols.len() * l_max);
+        for t in 0..l_max {
+            rows.extend(cols.iter().map(|c| c.get(t).copied().unwrap_or(NO_ACTION)));
         }
-        let mut rows = vec![NO_ACTION; cells];
-        for (i, traj) in self.trajectories.iter().enumerate() {
-            if let ActionSeq::Discrete(v) = &traj.actions {
-                for (t, &a) in v.iter().enumerate() {
-                    rows[t * n + i] = a;
+        self.by_step = Arc::new(rows);
+        self.step_rows = l_max;
+    }
+
+    /// The by-step layout after an insert that appended the last trajectory and, if
+    /// `removed` is set, removed the one at that index, from the layout before it (`old`,
+    /// `old_rows` rows of `old_n`): its rows without the removed column, plus the new
+    /// one. The same cells as [`Pool::build_by_step`], copied a row at a time.
+    fn update_by_step(
+        &mut self,
+        old: &[u32],
+        old_n: usize,
+        old_rows: usize,
+        removed: Option<usize>,
+    ) {
+        let n = self.trajectories.len();
+        let laid_out = old_rows > 0 || old_n == 0;
+        let (Some(cols), true) = (self.step_columns(), laid_out) else {
+            return self.build_by_step();
+        };
+        let (Some(&new), Some(p)) = (cols.last(), removed.or(Some(old_n))) else {
+            return self.build_by_step();
+        };
+        if n != old_n + 1 - usize::from(removed.is_some()) || p > old_n {
+            return self.build_by_step();
+        }
+        let l_max = self.lens.iter().copied().max().unwrap_or(0);
+        let mut rows = Vec::with_capacity(n * l_max);
+        for t in 0..l_max {
+            match old.get(t * old_n..(t + 1) * old_n).filter(|_| t < old_rows) {
+                Some(row) => {
+                    rows.extend_from_slice(&row[..p]);
+                    rows.extend_from_slice(row.get(p + 1..).unwrap_or_default());
                 }
+                None => rows.resize(rows.len() + n - 1, NO_ACTION),
             }
+            rows.push(new.get(t).copied().unwrap_or(NO_ACTION));
         }
-        self.by_step = Arc::from(rows);
+        self.by_step = Arc::new(rows);
         self.step_rows = l_max;
     }
 
@@ -218,22 +276,53 @@ impl Pool {
 
     /// Performs a planned change and increments the version.
     pub fn apply(&mut self, change: &PoolChange) {
+        self.apply_with(change, true);
+    }
+
+    /// [`Pool::apply`] without laying the pool out by step: the same pool, whose steps
+    /// read each trajectory's action from its own sequence. For a private copy that
+    /// serves a few steps (the rest of a batch after an episode end) before the store's
+    /// pool replaces it: laying out costs O(|D| × L_max).
+    pub fn apply_without_layout(&mut self, change: &PoolChange) {
+        self.apply_with(change, false);
+    }
+
+    fn apply_with(&mut self, change: &PoolChange, lay_out: bool) {
         match change {
             PoolChange::Insert {
                 trajectory,
                 replaces,
             } => {
+                let old_n = self.trajectories.len();
+                let removed = replaces.and_then(|seq| self.seqs.iter().position(|&s| s == seq));
                 if let Some(seq) = replaces {
                     self.trajectories.retain(|t| t.seq != *seq);
                 }
                 self.next_seq = self.next_seq.max(trajectory.seq + 1);
+                // Seqs increase: the new trajectory is normally the last one.
+                let last = self
+                    .trajectories
+                    .last()
+                    .is_none_or(|t| t.seq < trajectory.seq);
                 self.trajectories.push(trajectory.clone());
                 self.trajectories.sort_by_key(|t| t.seq);
+                self.version += 1;
+                self.recompute_derived();
+                let old = std::mem::take(&mut self.by_step);
+                if !lay_out {
+                    self.step_rows = 0;
+                } else if last && removed.is_some() == replaces.is_some() {
+                    self.update_by_step(&old, old_n, self.step_rows, removed);
+                } else {
+                    self.build_by_step();
+                }
             }
-            PoolChange::Reset => self.trajectories.clear(),
+            PoolChange::Reset => {
+                self.trajectories.clear();
+                self.version += 1;
+                self.recompute();
+            }
         }
-        self.version += 1;
-        self.recompute();
     }
 
     /// |D| at most.
@@ -267,6 +356,10 @@ impl Pool {
     /// The trajectories (indices) in the order x descending, then seq ascending.
     pub(crate) fn by_place(&self) -> &[u32] {
         &self.by_place
+    }
+    /// Each trajectory's place in [`Pool::by_place`], aligned with [`Pool::trajectories`].
+    pub(crate) fn place_of(&self) -> &[u32] {
+        &self.place_of
     }
     /// For a pool laid out by step ([`Pool::by_step`]): every trajectory's action at step
     /// `t` ([`NO_ACTION`] where t ≥ L_i), aligned with [`Pool::trajectories`]; `None` past
@@ -364,6 +457,60 @@ mod tests {
         assert_eq!(p.l_min(), 0);
         offer(&mut p, 2, 1.0);
         assert_eq!(p.seqs(), &[2]);
+    }
+
+    #[test]
+    fn the_by_step_layout_after_a_change_is_the_one_built_from_scratch() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = |m: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state % m
+        };
+        for capacity in [1, 2, 5, 30] {
+            let mut p = Pool::new(capacity);
+            for _ in 0..200 {
+                // Lengths up to 3000 with a few short ones: some pools are too ragged to
+                // lay out, and the longest trajectory is sometimes the one replaced.
+                let len = if next(4) == 0 {
+                    1 + next(5)
+                } else {
+                    1 + next(3000)
+                } as usize;
+                let actions = (0..len).map(|_| next(3) as u32).collect();
+                if let Some(c) = p.plan_offer(ActionSeq::Discrete(actions), next(50) as f64) {
+                    let mut unlaid = p.clone();
+                    unlaid.apply_without_layout(&c);
+                    p.apply(&c);
+                    assert_eq!(
+                        (
+                            unlaid.version(),
+                            unlaid.seqs(),
+                            unlaid.lens(),
+                            unlaid.l_min()
+                        ),
+                        (p.version(), p.seqs(), p.lens(), p.l_min())
+                    );
+                    assert_eq!((unlaid.xs(), unlaid.by_place()), (p.xs(), p.by_place()));
+                    assert!(!unlaid.by_step() && unlaid.step_row(0).is_none());
+                }
+                if next(40) == 0 {
+                    p.apply(&p.plan_reset());
+                }
+                let mut fresh = p.clone();
+                fresh.build_by_step();
+                assert_eq!(p.step_rows, fresh.step_rows);
+                assert_eq!(p.by_step, fresh.by_step);
+                assert_eq!(p.by_step(), fresh.by_step());
+                let mut places: Vec<u32> = p.by_place.clone();
+                places.sort_unstable();
+                assert!(places.iter().enumerate().all(|(i, &x)| x as usize == i));
+                for (place, &i) in p.by_place().iter().enumerate() {
+                    assert_eq!(p.place_of()[i as usize] as usize, place);
+                }
+            }
+        }
     }
 
     #[test]

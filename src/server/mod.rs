@@ -18,7 +18,7 @@ use crate::auth::{Access, AuthLayer};
 use crate::proto::shaping_server::ShapingServer;
 use crate::registry::Registry;
 use crate::service::status::remap_response_headers;
-use crate::service::ShapingService;
+use crate::service::{ShapingRoutes, ShapingService};
 use crate::settings::Settings;
 use crate::store::{DiskStore, MemoryStore, RedisOptions, RedisStore, Store};
 use crate::telemetry::{self, GrpcMetricsLayer, Metrics};
@@ -149,9 +149,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     if access.is_some() {
         service = service.with_credentials_required();
     }
-    let shaping = ShapingServer::new(service.with_metrics(metrics.clone()))
-        .max_decoding_message_size(limit)
-        .max_encoding_message_size(limit);
+    let shaping = ShapingRoutes::new(service.with_metrics(metrics.clone()), limit);
     let (health_reporter, health) = tonic_health::server::health_reporter();
     health_reporter
         .set_serving::<ShapingServer<ShapingService>>()

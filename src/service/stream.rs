@@ -4,20 +4,56 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use bytes::BytesMut;
 use tokio::sync::mpsc::Sender;
 use tokio_util::sync::CancellationToken;
 use tonic::{Status, Streaming};
 
+use super::codec::{encode_shaped, Answer};
 use super::convert::{batch_view, resume_views, shaped_proto, task_proto};
 use super::status::remap_decode_status;
 use crate::auth::{Caller, StreamSlot};
 use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
 use crate::registry::Registry;
-use crate::session::{OpenRequest, StreamSession};
+use crate::session::{OpenRequest, Shaped, StreamSession};
 use crate::telemetry::Metrics;
 
-type Tx = Sender<Result<ShapeResponse, Status>>;
+/// The messages a Shape stream answers with, as its transport sends them.
+pub(super) trait Answers: Send + 'static {
+    /// The answer to `Open`.
+    fn opened(task: crate::proto::Task) -> Self;
+    /// The answer to a batch; `scratch` is the stream's to keep between batches.
+    fn shaped(shaped: &Shaped<'_>, scratch: &mut BytesMut) -> Self;
+}
+
+/// Messages for prost's codec (the generated `ShapingServer`).
+impl Answers for ShapeResponse {
+    fn opened(task: crate::proto::Task) -> Self {
+        ShapeResponse {
+            kind: Some(shape_response::Kind::Opened(task)),
+        }
+    }
+    fn shaped(shaped: &Shaped<'_>, _: &mut BytesMut) -> Self {
+        ShapeResponse {
+            kind: Some(shape_response::Kind::Shaped(shaped_proto(shaped))),
+        }
+    }
+}
+
+/// Messages for [`super::codec::ShapeCodec`]: a batch's answer is encoded here, into the
+/// stream's buffer (whose memory comes back once the transport has sent the bytes).
+impl Answers for Answer {
+    fn opened(task: crate::proto::Task) -> Self {
+        Answer::Message(ShapeResponse::opened(task))
+    }
+    fn shaped(shaped: &Shaped<'_>, scratch: &mut BytesMut) -> Self {
+        encode_shaped(shaped, scratch);
+        Answer::Encoded(scratch.split().freeze())
+    }
+}
+
+type Tx<A> = Sender<Result<A, Status>>;
 
 /// What ended a stream; only errors are sent to the client.
 enum End {
@@ -65,13 +101,13 @@ async fn next(
     }
 }
 
-async fn serve(
+async fn serve<A: Answers>(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
     caller: &Caller,
     metrics: Option<Arc<Metrics>>,
     mut inbound: Streaming<ShapeRequest>,
-    tx: &Tx,
+    tx: &Tx<A>,
 ) -> End {
     let secs = registry.limits().stream_idle_timeout_secs;
     let idle = (secs > 0).then(|| Duration::from_secs(secs));
@@ -96,9 +132,7 @@ async fn serve(
         }
         Err(end) => return end,
     };
-    let opened = ShapeResponse {
-        kind: Some(shape_response::Kind::Opened(task_proto(session.task()))),
-    };
+    let opened = A::opened(task_proto(session.task()));
     if tx.send(Ok(opened)).await.is_err() {
         return End::ClientDone;
     }
@@ -107,6 +141,7 @@ async fn serve(
     let meter = metrics.map(|m| m.shape(session.task().key()));
 
     let mut scores = Vec::new();
+    let mut scratch = BytesMut::new();
     loop {
         let batch = match next(&mut inbound, &shutdown, idle).await {
             Ok(shape_request::Kind::Steps(b)) => b,
@@ -119,17 +154,14 @@ async fn serve(
             return e.into();
         }
         let started = meter.as_ref().map(|_| Instant::now());
-        let shaped = match session.step(&batch_view(&batch, &mut scores)).await {
+        let msg = match session.step(&batch_view(&batch, &mut scores)).await {
             Ok(shaped) => {
                 if let (Some(m), Some(t)) = (&meter, started) {
                     m.batch(shaped.outputs.len(), shaped.episodes_ended, t.elapsed());
                 }
-                shaped_proto(&shaped)
+                A::shaped(&shaped, &mut scratch)
             }
             Err(e) => return e.into(),
-        };
-        let msg = ShapeResponse {
-            kind: Some(shape_response::Kind::Shaped(shaped)),
         };
         if tx.send(Ok(msg)).await.is_err() {
             return End::ClientDone;
@@ -139,13 +171,13 @@ async fn serve(
 
 /// Drives one stream of `caller` to its end and reports a failure as the stream's final
 /// status; the caller's stream slot is held until then.
-pub(super) async fn run(
+pub(super) async fn run<A: Answers>(
     registry: Arc<Registry>,
     shutdown: CancellationToken,
     (caller, _slot): (Caller, StreamSlot),
     metrics: Option<Arc<Metrics>>,
     inbound: Streaming<ShapeRequest>,
-    tx: Tx,
+    tx: Tx<A>,
 ) {
     match serve(registry, shutdown, &caller, metrics, inbound, &tx).await {
         End::ClientDone => {}

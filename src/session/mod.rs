@@ -284,8 +284,10 @@ impl StreamSession {
                 ended.push((env as u32, number));
             }
             self.task.count_episode();
+            // The private copy serves only the rest of this batch (the store's pool,
+            // laid out by step, replaces it): not worth laying out.
             if let Some(change) = pool.plan_offer(end.actions.clone(), end.score) {
-                Arc::make_mut(&mut pool).apply(&change);
+                Arc::make_mut(&mut pool).apply_without_layout(&change);
             }
             ops.push(PoolOp::Offer {
                 actions: end.actions,
