@@ -18,6 +18,9 @@ SCRIPT = textwrap.dedent(
     import os, signal, sys, threading, time
     import tamrm
 
+    # Ctrl-C as in a terminal, even when the tests run from a shell's background job, whose
+    # children start with SIGINT ignored (then Python installs no KeyboardInterrupt).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     address, pid, where = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     client = tamrm.Client(address)
     client.create_task("t", num_actions=2)
