@@ -28,19 +28,9 @@ use tokio::sync::{mpsc, Barrier};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
-/// A tiny deterministic PRNG (xorshift64*), so runs are repeatable without extra deps.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
-    }
-}
+#[path = "common/workload.rs"]
+mod workload;
+use workload::{step_batch, Rng};
 
 struct Scenario {
     name: &'static str,
@@ -75,25 +65,6 @@ struct Driven {
     episodes: u64,
     /// From the common start (after every stream opened) to the last answer.
     elapsed: Duration,
-}
-
-/// One `StepBatch` of `n` entries: random discrete actions (n = 2), reward 1, episodes
-/// ending with probability 1/`episode_len`, values sent.
-fn step_batch(rng: &mut Rng, n: usize, episode_len: u64, episodes: &mut u64) -> proto::StepBatch {
-    let mut terminated = Vec::with_capacity(n);
-    for _ in 0..n {
-        let end = rng.below(episode_len) == 0;
-        *episodes += u64::from(end);
-        terminated.push(end);
-    }
-    proto::StepBatch {
-        actions: (0..n).map(|_| rng.below(2) as u32).collect(),
-        rewards: (0..n).map(|_| 1.0).collect(),
-        terminated,
-        values: (0..n).map(|_| 0.5).collect(),
-        next_values: (0..n).map(|_| 0.6).collect(),
-        ..Default::default()
-    }
 }
 
 async fn drive(

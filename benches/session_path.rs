@@ -25,62 +25,15 @@ use tamrm::service::convert::{batch_view, shaped_proto};
 use tamrm::session::{OpenRequest, StreamSession};
 use tamrm::store::MemoryStore;
 
-/// The loadgen's PRNG (xorshift64*), so the workload is the same.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
-    }
-}
-
-/// The loadgen's `StepBatch`: random actions (n = 2), reward 1, episodes ending with
-/// probability 1/200, values sent.
-fn step_batch(rng: &mut Rng, n: usize) -> proto::StepBatch {
-    let terminated = (0..n).map(|_| rng.below(200) == 0).collect();
-    proto::StepBatch {
-        actions: (0..n).map(|_| rng.below(2) as u32).collect(),
-        rewards: vec![1.0; n],
-        terminated,
-        values: vec![0.5; n],
-        next_values: vec![0.6; n],
-        ..Default::default()
-    }
-}
+#[path = "common/workload.rs"]
+mod workload;
+use workload::{step_batch, thread_cpu_time, Rng};
 
 fn arg<T: std::str::FromStr>(args: &[String], name: &str) -> Option<T> {
     args.iter()
         .position(|a| a == name)
         .and_then(|i| args.get(i + 1))
         .and_then(|v| v.parse().ok())
-}
-
-/// CPU time of the calling thread (`CLOCK_THREAD_CPUTIME_ID`, 64-bit Linux): time spent
-/// descheduled on a shared machine is not counted.
-fn thread_cpu() -> Duration {
-    #[repr(C)]
-    struct Timespec {
-        tv_sec: i64,
-        tv_nsec: i64,
-    }
-    extern "C" {
-        fn clock_gettime(clock_id: i32, tp: *mut Timespec) -> i32;
-    }
-    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
-    let mut ts = Timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime only writes the struct it is given, which has the layout of
-    // `struct timespec` on 64-bit Linux (two 64-bit fields).
-    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    assert_eq!(rc, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
-    Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
 }
 
 /// The echo floor's answer (`benches/loadgen.rs`, `Echo::shape`).
@@ -155,11 +108,13 @@ async fn run(entries: usize, streams: usize, batches: usize, side: Side) {
         for (session, rng) in sessions.iter_mut().zip(&mut rngs) {
             wire.clear();
             proto::ShapeRequest {
-                kind: Some(proto::shape_request::Kind::Steps(step_batch(rng, entries))),
+                kind: Some(proto::shape_request::Kind::Steps(step_batch(
+                    rng, entries, 200, &mut 0,
+                ))),
             }
             .encode(&mut wire)
             .expect("encode");
-            let t0 = thread_cpu();
+            let t0 = thread_cpu_time();
             match side {
                 Side::Server => {
                     let batch = match decode_request(&wire).expect("decode").kind {
@@ -190,7 +145,7 @@ async fn run(entries: usize, streams: usize, batches: usize, side: Side) {
                     .expect("encode");
                 }
             }
-            cpu += thread_cpu() - t0;
+            cpu += thread_cpu_time() - t0;
             let back = match proto::ShapeResponse::decode(&answer[..])
                 .expect("decode")
                 .kind

@@ -22,6 +22,11 @@ use tamrm::core::{
     ActionRef, ActionSeq, Episode, KnnScratch, Pool, StepInput, TaskConfig, TaskConfigInput, Values,
 };
 
+#[path = "common/workload.rs"]
+mod workload;
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
+use workload::thread_cpu_time;
+
 /// Discrete actions of the main benchmarks.
 const NUM_ACTIONS: u32 = 4;
 /// Dimension of the continuous benchmark.
@@ -117,28 +122,6 @@ impl Clock {
             Clock::ThreadCpu => thread_cpu_time(),
         }
     }
-}
-
-#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
-fn thread_cpu_time() -> Duration {
-    #[repr(C)]
-    struct Timespec {
-        tv_sec: i64,
-        tv_nsec: i64,
-    }
-    extern "C" {
-        fn clock_gettime(clock_id: i32, tp: *mut Timespec) -> i32;
-    }
-    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
-    let mut ts = Timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime only writes the struct it is given, which has the layout of
-    // `struct timespec` on 64-bit Linux (two 64-bit fields).
-    let rc = unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    assert_eq!(rc, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID) failed");
-    Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
 }
 
 /// Runs `iters` timed calls of `run(episode, j)` for j in 0..per_clone on fresh clones
