@@ -30,7 +30,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 #[path = "common/workload.rs"]
 mod workload;
-use workload::{step_batch, Rng};
+use workload::{echo, step_batch, Rng};
 
 struct Scenario {
     name: &'static str,
@@ -308,16 +308,7 @@ impl Shaping for Echo {
                     shape_request::Kind::Open(_) => {
                         shape_response::Kind::Opened(proto::Task::default())
                     }
-                    shape_request::Kind::Steps(b) => {
-                        shape_response::Kind::Shaped(proto::ShapedBatch {
-                            knn_rewards: b.rewards.clone(),
-                            potentials: b.values.iter().map(|&v| f64::from(v)).collect(),
-                            steps: b.actions,
-                            knn_active: b.terminated,
-                            rewards: b.rewards,
-                            pool_version: 1,
-                        })
-                    }
+                    shape_request::Kind::Steps(b) => shape_response::Kind::Shaped(echo(b)),
                 };
                 let msg = ShapeResponse { kind: Some(kind) };
                 if tx.send(Ok(msg)).await.is_err() {

@@ -27,25 +27,13 @@ use tamrm::store::MemoryStore;
 
 #[path = "common/workload.rs"]
 mod workload;
-use workload::{step_batch, thread_cpu_time, Rng};
+use workload::{echo, step_batch, thread_cpu_time, Rng};
 
 fn arg<T: std::str::FromStr>(args: &[String], name: &str) -> Option<T> {
     args.iter()
         .position(|a| a == name)
         .and_then(|i| args.get(i + 1))
         .and_then(|v| v.parse().ok())
-}
-
-/// The echo floor's answer (`benches/loadgen.rs`, `Echo::shape`).
-fn echo(b: proto::StepBatch) -> proto::ShapedBatch {
-    proto::ShapedBatch {
-        knn_rewards: b.rewards.clone(),
-        potentials: b.values.iter().map(|&v| f64::from(v)).collect(),
-        steps: b.actions,
-        knn_active: b.terminated,
-        rewards: b.rewards,
-        pool_version: 1,
-    }
 }
 
 /// Which code answers a batch.

@@ -47,6 +47,19 @@ pub fn step_batch(
 
 /// CPU time of the calling thread (`CLOCK_THREAD_CPUTIME_ID`, 64-bit Linux): time spent
 /// descheduled on a shared machine is not counted.
+/// The echo floor's answer to a batch (`loadgen.rs`'s `Echo::shape`): a `ShapedBatch` of
+/// the same size built from the request's columns, no session, no core.
+pub fn echo(b: proto::StepBatch) -> proto::ShapedBatch {
+    proto::ShapedBatch {
+        knn_rewards: b.rewards.clone(),
+        potentials: b.values.iter().map(|&v| f64::from(v)).collect(),
+        steps: b.actions,
+        knn_active: b.terminated,
+        rewards: b.rewards,
+        pool_version: 1,
+    }
+}
+
 #[cfg(all(target_os = "linux", target_pointer_width = "64"))]
 pub fn thread_cpu_time() -> Duration {
     #[repr(C)]
