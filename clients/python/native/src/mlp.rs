@@ -4,8 +4,11 @@
 //!
 //! Each call reads the weights as they are at that moment (the arrays are views of the
 //! torch parameters, which the optimizer updates in place), so nothing is copied when the
-//! model trains. One call for a batch of 8 CartPole observations through a 64-64 critic is
-//! about a microsecond, against ~60 µs for a torch forward pass from Python.
+//! model trains. One call for a batch of 8 CartPole observations through a 64-64 tanh
+//! critic takes about 3 µs from Python (16: about 6 µs), against ~60 µs for a torch
+//! forward pass. Where the CPU has AVX2 and FMA, eight outputs are computed at once in
+//! registers and their lanes reduced after an 8 × 8 transpose: the same operations in the
+//! same order as the portable code, so the same bits.
 //!
 //! Numerics: float32 throughout, like the model. A dot product is summed in eight
 //! interleaved partial sums (vectorisable), not in torch's order, with fused multiply-adds
@@ -42,7 +45,7 @@ impl Activation {
     fn apply(self, xs: &mut [f32]) {
         match self {
             Activation::Identity => {}
-            Activation::Tanh => xs.iter_mut().for_each(|x| *x = tanh(*x)),
+            Activation::Tanh => tanh_all(xs),
             // NaN stays NaN (the comparison is false), as in torch.
             Activation::Relu => xs.iter_mut().for_each(|x| {
                 if *x < 0.0 {
@@ -85,6 +88,11 @@ impl Mlp {
         let mut out = Vec::with_capacity(layers.len());
         for (i, (weight, bias, activation)) in layers.into_iter().enumerate() {
             let [outputs, inputs] = [weight.shape()[0], weight.shape()[1]];
+            if outputs == 0 || inputs == 0 {
+                return Err(PyValueError::new_err(format!(
+                    "Mlp: layer {i} has a weight of shape ({outputs}, {inputs}); both must be > 0"
+                )));
+            }
             if !weight.is_c_contiguous() {
                 return Err(PyValueError::new_err(format!(
                     "Mlp: the weight of layer {i} is not C-contiguous"
@@ -203,7 +211,82 @@ fn forward(x: &[f32], w: &[f32], b: &[f32], inputs: usize, out: &mut [f32]) {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn forward_avx2_fma(x: &[f32], w: &[f32], b: &[f32], inputs: usize, out: &mut [f32]) {
-    forward_with::<Fused>(x, w, b, inputs, out)
+    use std::arch::x86_64::*;
+    let outputs = b.len();
+    let grouped = outputs / 8 * 8;
+    let whole = inputs / 8 * 8;
+    debug_assert!(w.len() == outputs * inputs && x.len().is_multiple_of(inputs));
+    // Per group of eight outputs: where output j's tail weights start, j = 0..8.
+    let stride = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let stride = _mm256_mullo_epi32(stride, _mm256_set1_epi32(inputs as i32));
+    for (row, y) in x.chunks_exact(inputs).zip(out.chunks_exact_mut(outputs)) {
+        for g in (0..grouped).step_by(8) {
+            let w8 = &w[g * inputs..(g + 8) * inputs];
+            // acc[j], lane k: output g + j's partial sum over inputs ≡ k (mod 8), exactly
+            // the lanes of `forward_with`.
+            let mut acc = [_mm256_setzero_ps(); 8];
+            for c in (0..whole).step_by(8) {
+                // SAFETY: c + 8 ≤ whole ≤ inputs = row.len(), and j·inputs + c + 8 ≤ w8.len().
+                let xv = _mm256_loadu_ps(row.as_ptr().add(c));
+                for (j, a) in acc.iter_mut().enumerate() {
+                    let wv = _mm256_loadu_ps(w8.as_ptr().add(j * inputs + c));
+                    *a = _mm256_fmadd_ps(xv, wv, *a);
+                }
+            }
+            // Transposed, t[k] lane j = acc[j] lane k, so that `reduce`'s pairwise sum of
+            // the eight lanes runs for the eight outputs at once, in the same order.
+            let t = transpose8(acc);
+            let red = _mm256_add_ps(
+                _mm256_add_ps(_mm256_add_ps(t[0], t[4]), _mm256_add_ps(t[2], t[6])),
+                _mm256_add_ps(_mm256_add_ps(t[1], t[5]), _mm256_add_ps(t[3], t[7])),
+            );
+            let mut tail = _mm256_setzero_ps();
+            for (i, &xi) in row.iter().enumerate().skip(whole) {
+                // SAFETY: the largest index, 7·inputs + i, is below 8·inputs = w8.len().
+                let wv = _mm256_i32gather_ps::<4>(w8.as_ptr().add(i), stride);
+                tail = _mm256_fmadd_ps(_mm256_set1_ps(xi), wv, tail);
+            }
+            let bias = _mm256_loadu_ps(b.as_ptr().add(g));
+            let yv = _mm256_add_ps(_mm256_add_ps(red, tail), bias);
+            _mm256_storeu_ps(y.as_mut_ptr().add(g), yv);
+        }
+        if grouped < outputs {
+            forward_rest::<Fused>(row, w, b, inputs, grouped, &mut y[grouped..]);
+        }
+    }
+}
+
+/// The 8 × 8 transpose of eight vectors: `out[k]` lane j = `v[j]` lane k.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn transpose8(v: [std::arch::x86_64::__m256; 8]) -> [std::arch::x86_64::__m256; 8] {
+    use std::arch::x86_64::*;
+    let t0 = _mm256_unpacklo_ps(v[0], v[1]);
+    let t1 = _mm256_unpackhi_ps(v[0], v[1]);
+    let t2 = _mm256_unpacklo_ps(v[2], v[3]);
+    let t3 = _mm256_unpackhi_ps(v[2], v[3]);
+    let t4 = _mm256_unpacklo_ps(v[4], v[5]);
+    let t5 = _mm256_unpackhi_ps(v[4], v[5]);
+    let t6 = _mm256_unpacklo_ps(v[6], v[7]);
+    let t7 = _mm256_unpackhi_ps(v[6], v[7]);
+    let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+    let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+    let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+    let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+    let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+    let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+    let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+    let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+    [
+        _mm256_permute2f128_ps::<0x20>(s0, s4),
+        _mm256_permute2f128_ps::<0x20>(s1, s5),
+        _mm256_permute2f128_ps::<0x20>(s2, s6),
+        _mm256_permute2f128_ps::<0x20>(s3, s7),
+        _mm256_permute2f128_ps::<0x31>(s0, s4),
+        _mm256_permute2f128_ps::<0x31>(s1, s5),
+        _mm256_permute2f128_ps::<0x31>(s2, s6),
+        _mm256_permute2f128_ps::<0x31>(s3, s7),
+    ]
 }
 
 /// `acc + a · b`, rounded once ([`Fused`]) or twice ([`Separate`]).
@@ -259,16 +342,32 @@ fn forward_with<M: MulAdd>(x: &[f32], w: &[f32], b: &[f32], inputs: usize, out: 
                 *yo = reduce::<M>(acc_j, row_tail, w_tail) + bo;
             }
         }
-        for o in grouped..outputs {
-            let wo = &w[o * inputs..(o + 1) * inputs];
-            let mut acc = [0.0f32; 8];
-            for (ca, cb) in row8.chunks_exact(8).zip(wo[..whole].chunks_exact(8)) {
-                for k in 0..8 {
-                    acc[k] = M::mul_add(ca[k], cb[k], acc[k]);
-                }
+        forward_rest::<M>(row, w, b, inputs, grouped, &mut y[grouped..]);
+    }
+}
+
+/// The outputs `from..` of one row (`y` holds them), each on its own: the same dot
+/// product as in a group of eight.
+#[inline(always)]
+fn forward_rest<M: MulAdd>(
+    row: &[f32],
+    w: &[f32],
+    b: &[f32],
+    inputs: usize,
+    from: usize,
+    y: &mut [f32],
+) {
+    let whole = inputs / 8 * 8;
+    let (row8, row_tail) = row.split_at(whole);
+    for (o, yo) in (from..b.len()).zip(y) {
+        let wo = &w[o * inputs..(o + 1) * inputs];
+        let mut acc = [0.0f32; 8];
+        for (ca, cb) in row8.chunks_exact(8).zip(wo[..whole].chunks_exact(8)) {
+            for k in 0..8 {
+                acc[k] = M::mul_add(ca[k], cb[k], acc[k]);
             }
-            y[o] = reduce::<M>(&acc, row_tail, &wo[whole..]) + b[o];
         }
+        *yo = reduce::<M>(&acc, row_tail, &wo[whole..]) + b[o];
     }
 }
 
@@ -280,6 +379,23 @@ fn reduce<M: MulAdd>(acc: &[f32; 8], a_tail: &[f32], b_tail: &[f32]) -> f32 {
         tail = M::mul_add(*x, *y, tail);
     }
     ((acc[0] + acc[4]) + (acc[2] + acc[6])) + ((acc[1] + acc[5]) + (acc[3] + acc[7])) + tail
+}
+
+/// [`tanh`] of every element, eight at a time where the CPU has AVX2 (the same
+/// operations, so the same results: no multiply-add is fused without being written).
+fn tanh_all(xs: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has the feature the function is compiled for (just checked).
+        return unsafe { tanh_all_avx2(xs) };
+    }
+    xs.iter_mut().for_each(|x| *x = tanh(*x))
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn tanh_all_avx2(xs: &mut [f32]) {
+    xs.iter_mut().for_each(|x| *x = tanh(*x))
 }
 
 /// tanh for float32: a 13/6 rational approximation on [-7.9, 7.9] (±1 beyond, where
@@ -362,6 +478,16 @@ mod tests {
         assert_eq!(tanh(f32::NEG_INFINITY), -1.0);
     }
 
+    /// A xorshift stream of floats uniform in [-scale, scale).
+    fn uniform(mut seed: u64, scale: f32) -> impl FnMut() -> f32 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            ((seed >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
+        }
+    }
+
     type Forward = fn(&[f32], &[f32], &[f32], usize, &mut [f32]);
 
     /// Every multiply-add this CPU can run: `forward` with each.
@@ -383,13 +509,7 @@ mod tests {
     fn forward_equals_the_definition_in_f64_up_to_rounding() {
         // Awkward sizes: a group of 8 outputs plus 3, and inputs of 8 plus a tail of 5.
         let (inputs, outputs, rows) = (13usize, 11usize, 3usize);
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            ((seed >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        };
+        let mut next = uniform(0x2545_f491_4f6c_dd1d, 1.0);
         let x: Vec<f32> = (0..rows * inputs).map(|_| next()).collect();
         let w: Vec<f32> = (0..outputs * inputs).map(|_| next()).collect();
         let b: Vec<f32> = (0..outputs).map(|_| next()).collect();
@@ -428,6 +548,46 @@ mod tests {
             f(&x[inputs..2 * inputs], &w, &b, inputs, &mut one);
             assert_eq!(one, out[outputs..2 * outputs], "{name}");
         }
+    }
+
+    /// The AVX2 kernel is `forward_with::<Fused>` bit for bit: the same lanes, the same
+    /// pairwise order, the same tail and bias, at sizes around every group boundary.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx2_kernel_is_the_fused_definition_bit_for_bit() {
+        if !(std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")) {
+            return;
+        }
+        let mut next = uniform(0x9e37_79b9_7f4a_7c15, 2.0);
+        for inputs in [1usize, 3, 4, 7, 8, 9, 15, 16, 17, 64, 67] {
+            for outputs in [1usize, 7, 8, 9, 16, 17, 64] {
+                let rows = 5;
+                let x: Vec<f32> = (0..rows * inputs).map(|_| next()).collect();
+                let w: Vec<f32> = (0..outputs * inputs).map(|_| next()).collect();
+                let b: Vec<f32> = (0..outputs).map(|_| next()).collect();
+                let mut want = vec![0.0; rows * outputs];
+                let mut got = vec![0.0; rows * outputs];
+                forward_with::<Fused>(&x, &w, &b, inputs, &mut want);
+                // SAFETY: the CPU has the features (checked above).
+                unsafe { forward_avx2_fma(&x, &w, &b, inputs, &mut got) };
+                let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&got),
+                    bits(&want),
+                    "inputs {inputs}, outputs {outputs}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn tanh_of_a_layer_is_tanh_of_each_element() {
+        let mut xs: Vec<f32> = (-4000..4000).map(|i| i as f32 / 397.0).collect();
+        xs.extend([f32::NAN, f32::INFINITY, -0.0, 1e-5, 20.0]);
+        let want: Vec<u32> = xs.iter().map(|&x| tanh(x).to_bits()).collect();
+        tanh_all(&mut xs);
+        let got: Vec<u32> = xs.iter().map(|x| x.to_bits()).collect();
+        assert_eq!(got, want);
     }
 
     #[test]
