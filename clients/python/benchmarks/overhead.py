@@ -8,7 +8,10 @@ Workloads:
    critic, so that the cost measured is tamrm's, not a network's).
 2. A Stable-Baselines3 A2C ``learn()`` on CartPole-v1 (8 envs, a fixed number of
    timesteps), plain and through ``ShapedVecEnv`` with the model's own values bound
-   (``bind_model``).
+   (``bind_model``), in two forms (``--a2c-weights``): with alpha = beta = 0, where the
+   learner gets the plain run's rewards and learns the same weights (checked), so the
+   difference is what shaping costs; and with the SPEC's default weights, where it also
+   learns differently.
 
 Variants (shaping backends): ``plain`` (no shaping), ``engine`` (``tamrm.Engine()``, in
 memory), ``engine-dir`` (``tamrm.Engine(data_dir)``, durable), ``remote`` (``tamrm.Client``
@@ -72,12 +75,14 @@ def _linear_value(obs: Any) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _shaped(backend: Backend | None, num_envs: int) -> Iterator[tamrm.Session | None]:
+def _shaped(
+    backend: Backend | None, num_envs: int, **config: float
+) -> Iterator[tamrm.Session | None]:
     if backend is None:
         yield None
         return
     task_id = f"bench/{uuid.uuid4().hex[:12]}"
-    backend.create_task(task_id, num_actions=2)
+    backend.create_task(task_id, num_actions=2, **config)
     try:
         with backend.session(task_id, num_envs) as session:
             yield session
@@ -104,8 +109,17 @@ def vector_loop(backend: Backend | None, num_envs: int, steps: int, with_values:
     return elapsed
 
 
-def a2c_run(backend: Backend | None, num_envs: int, timesteps: int) -> float:
-    """Seconds for an A2C ``learn(timesteps)`` on CartPole-v1."""
+def a2c_run(
+    backend: Backend | None, num_envs: int, timesteps: int, zero_weights: bool = False
+) -> tuple[float, float]:
+    """Seconds for an A2C ``learn(timesteps)`` on CartPole-v1, and a fingerprint of the
+    learned weights (their sum).
+
+    With ``zero_weights`` the task has alpha = beta = 0: every term is still computed and
+    sent, but R_meta = R, so the learner sees the plain run's rewards and, seeded alike,
+    learns exactly what the plain run learns (the fingerprints are equal). The time
+    difference is then the cost of shaping alone; with the default weights it also holds
+    the work of learning something else (other episode lengths, other resets)."""
     import torch
     from stable_baselines3 import A2C
     from stable_baselines3.common.env_util import make_vec_env
@@ -113,7 +127,8 @@ def a2c_run(backend: Backend | None, num_envs: int, timesteps: int) -> float:
     import tamrm.sb3
 
     torch.set_num_threads(1)
-    with _shaped(backend, num_envs) as session:
+    config = {"alpha": 0.0, "beta": 0.0} if zero_weights else {}
+    with _shaped(backend, num_envs, **config) as session:
         venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
         env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
         model = A2C("MlpPolicy", env, seed=0, device="cpu")
@@ -123,7 +138,8 @@ def a2c_run(backend: Backend | None, num_envs: int, timesteps: int) -> float:
         model.learn(total_timesteps=timesteps)
         elapsed = time.perf_counter() - start
         env.close()
-    return elapsed
+        fingerprint = float(sum(p.detach().double().sum() for p in model.policy.parameters()))
+    return elapsed, fingerprint
 
 
 def interleaved(
@@ -151,6 +167,12 @@ def main() -> None:
     parser.add_argument("--a2c-envs", type=int, default=8)
     parser.add_argument("--a2c-timesteps", type=int, default=20000)
     parser.add_argument("--no-sb3", action="store_true", help="skip the A2C runs")
+    parser.add_argument(
+        "--a2c-weights",
+        default="zero,default",
+        help="A2C forms, comma-separated: zero (alpha = beta = 0: the plain run's learning, "
+        "the cost of shaping alone) and/or default (the SPEC's weights)",
+    )
     parser.add_argument("--no-loop", action="store_true", help="skip the vector-loop runs")
     parser.add_argument(
         "--value-fn", action="store_true", help="also time the loop with a linear value_fn"
@@ -161,7 +183,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, 2 repeats")
     ns = parser.parse_args()
     if ns.quick:
-        ns.repeats, ns.steps, ns.a2c_timesteps = 2, 300, 4000
+        ns.repeats, ns.steps, ns.a2c_timesteps, ns.a2c_weights = 2, 300, 4000, "zero"
     variants = list(VARIANTS) if not ns.variants else ["plain", *ns.variants.split(",")]
     variants = list(dict.fromkeys(v for v in variants if v))
     if ns.server:
@@ -205,11 +227,27 @@ def main() -> None:
                 load.append(os.getloadavg())
         if not ns.no_sb3:
             k, ts = ns.a2c_envs, ns.a2c_timesteps
-            samples = interleaved(
-                variants, ns.repeats, lambda v: a2c_run(backends[v], k, ts), "a2c"
-            )
-            tables.append((f"SB3 A2C learn({ts}), {k} envs", ts // k, samples, ts))
-            load.append(os.getloadavg())
+            for form in ns.a2c_weights.split(","):
+                if form not in ("zero", "default"):
+                    parser.error(f"--a2c-weights: unknown form {form!r}")
+                zero = form == "zero"
+                prints: dict[str, set[float]] = {}
+
+                def run(v: str, zero: bool = zero, prints: dict[str, set[float]] = prints) -> float:
+                    secs, fingerprint = a2c_run(backends[v], k, ts, zero)
+                    prints.setdefault(v, set()).add(fingerprint)
+                    return secs
+
+                samples = interleaved(variants, ns.repeats, run, f"a2c {form}")
+                label = f"SB3 A2C learn({ts}), {k} envs, " + (
+                    "alpha = beta = 0 (same learning)" if zero else "default weights"
+                )
+                if zero and any(p != prints["plain"] for p in prints.values()):
+                    # The premise of the form: say so loudly if it does not hold.
+                    print(f"warning: {label}: the runs learned differently: {prints}")
+                    label += " (learning DIFFERED)"
+                tables.append((label, ts // k, samples, ts))
+                load.append(os.getloadavg())
 
     print(
         f"\n{started}; {platform.machine()}, {os.cpu_count()} CPUs, Python "

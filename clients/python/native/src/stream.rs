@@ -294,13 +294,16 @@ impl NativeStream {
         Ok(answer_arrays(py, answer, pool_version))
     }
 
-    /// One vector step of `tamrm.sb3.ShapedVecEnv` on which no environment ended (its
-    /// common case), in one call: the critic `critic` (if any) on `obs_before` and
-    /// `obs_after` in one batch (V(s) and V(s'), or Q with `q_values`), the step as
-    /// `step` shapes it, R_meta, r(t), F, knn_active and R added into the rows of `sums`
-    /// (`(5, num_envs)`, per env), the six info keys written into the dicts of `infos`,
-    /// and R_meta returned as float32. Every check and error is `step`'s.
-    #[pyo3(signature = (actions, rewards, critic, q_values, obs_before, obs_after, infos, sums))]
+    /// One vector step of `tamrm.sb3.ShapedVecEnv` in one call: the critic `critic` (if
+    /// any) on `obs_before` and `obs_after` in one batch (V(s) and V(s'), or Q with
+    /// `q_values`), the step as `step` shapes it (with `terminated`/`truncated` when an
+    /// environment ended), R_meta, r(t), F, knn_active and R added into the rows of
+    /// `sums` (`(5, num_envs)`, per env), the six info keys written into the dicts of
+    /// `infos`, and R_meta returned as float32. Every check and error is `step`'s.
+    #[pyo3(signature = (
+        actions, rewards, critic, q_values, obs_before, obs_after, infos, sums,
+        terminated=None, truncated=None
+    ))]
     #[allow(clippy::too_many_arguments)]
     fn step_vec<'py>(
         &self,
@@ -313,6 +316,8 @@ impl NativeStream {
         obs_after: Option<Bound<'py, PyArray2<f32>>>,
         infos: Bound<'py, PyList>,
         sums: Bound<'py, PyArray2<f64>>,
+        terminated: Option<Bound<'py, PyAny>>,
+        truncated: Option<Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyArray1<f32>>> {
         let mut guard = self.lock();
         let n = guard.shape.num_envs;
@@ -343,8 +348,8 @@ impl NativeStream {
             env_ids: None,
             actions: &actions,
             rewards: &rewards,
-            terminated: None,
-            truncated: None,
+            terminated: terminated.as_ref(),
+            truncated: truncated.as_ref(),
             values: v,
             q_values: q,
             scores: None,

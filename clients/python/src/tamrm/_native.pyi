@@ -45,6 +45,8 @@ class NativeStream:
         obs_after: npt.NDArray[np.float32] | None,
         infos: list[dict[str, object]],
         sums: npt.NDArray[np.float64],
+        terminated: npt.NDArray[np.bool_] | None = None,
+        truncated: npt.NDArray[np.bool_] | None = None,
     ) -> npt.NDArray[np.float32]: ...
     @property
     def pool_version(self) -> int: ...

@@ -301,10 +301,12 @@ class Session(Closing):
         obs_after: npt.NDArray[np.float32] | None,
         infos: list[dict[str, Any]],
         sums: npt.NDArray[np.float64],
+        terminated: npt.NDArray[np.bool_] | None = None,
+        truncated: npt.NDArray[np.bool_] | None = None,
     ) -> npt.NDArray[np.float32]:
         """One full vector step in one native call (``tamrm.sb3.ShapedVecEnv``'s fast path).
 
-        Every env sends one entry, none ends its episode; ``critic`` (a native MLP) gives
+        Every env sends one entry (ends as in :meth:`step`); ``critic`` (a native MLP) gives
         the values of ``obs_before`` and ``obs_after``; the answer is added into
         ``sums`` and written into ``infos``; returns R_meta as float32. Arguments are
         the canonical arrays (the caller checks dtypes and shapes); errors as :meth:`step`.
@@ -320,6 +322,8 @@ class Session(Closing):
             obs_after,
             infos,
             sums,
+            terminated,
+            truncated,
         )
 
     def abandon(self, env_ids: npt.ArrayLike) -> None:

@@ -558,8 +558,8 @@ class ShapedVecEnv(VecEnvWrapper):
         raw_obs, rewards, dones, infos = self.venv.step_wait()
         dones = np.asarray(dones, dtype=np.bool_)
         any_done = bool(dones.any())
-        if not any_done and self._fast_path:
-            shaped = self._fast_step(raw_obs, rewards, infos)
+        if self._fast_path and (not any_done or self.score_key is None):
+            shaped = self._fast_step(raw_obs, rewards, infos, dones if any_done else None)
             if shaped is not None:
                 return raw_obs, shaped, dones, infos
         obs = _obs_batch(raw_obs)
@@ -624,16 +624,22 @@ class ShapedVecEnv(VecEnvWrapper):
         return raw_obs, result.rewards.astype(np.float32), dones, infos
 
     def _fast_step(
-        self, raw_obs: VecEnvObs, rewards: npt.NDArray[Any], infos: list[dict[str, Any]]
+        self,
+        raw_obs: VecEnvObs,
+        rewards: npt.NDArray[Any],
+        infos: list[dict[str, Any]],
+        dones: npt.NDArray[np.bool_] | None,
     ) -> npt.NDArray[np.float32] | None:
-        """A step on which no env ended, in one native call; ``None``: take the general path.
+        """A step in one native call; ``None``: take the general path.
 
         It applies when the actions are the canonical array and the values, if any, come
         from a native critic (:class:`ModelValueFn` with ``native``) on array
-        observations. V(s) is evaluated again with V(s') in one batch rather than taken
-        from the previous step: the same values (a row's value depends on that row and
-        the weights only), without the version check. The result is the general path's,
-        bit for bit (tested on whole training runs).
+        observations, and, on a step where an env ended (``dones``), no ``score_key`` is
+        set. V(s) is evaluated again with V(s') in one batch rather than taken from the
+        previous step: the same values (a row's value depends on that row and the weights
+        only), without the version check; a truncated env's V(s') is that of its
+        ``terminal_observation``, as on the general path. The result is the general
+        path's, bit for bit (tested on whole training runs).
         """
         actions = self._actions
         if not (
@@ -661,10 +667,42 @@ class ShapedVecEnv(VecEnvWrapper):
             critic, q = native._mlp, hasattr(policy, "q_net")
         if type(rewards) is not np.ndarray:
             rewards = np.asarray(rewards, dtype=np.float64)
+        terminated = truncated = None
+        done_rows: list[int] = []
+        critic_after = after
+        if dones is not None:
+            done_rows = np.flatnonzero(dones).tolist()
+            truncated = np.zeros(self.num_envs, dtype=np.bool_)
+            for row in done_rows:
+                truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
+            terminated = dones & ~truncated
+            finals = [
+                row
+                for row in done_rows
+                if truncated[row] and infos[row].get("terminal_observation") is not None
+            ]
+            if finals and after is not None:
+                critic_after = after.copy()
+                for row in finals:
+                    last = np.asarray(infos[row]["terminal_observation"], dtype=np.float32)
+                    if last.size != after.shape[1]:
+                        return None
+                    critic_after[row] = last.reshape(-1)
         shaped = self.session._step_vec(
-            actions, rewards, critic, q, before, after, infos, self._acc
+            actions,
+            rewards,
+            critic,
+            q,
+            before,
+            critic_after,
+            infos,
+            self._acc,
+            terminated,
+            truncated,
         )
         self._env_steps += self.num_envs
+        for i in done_rows:
+            self._end_episode(i, infos[i], infos[i]["shaping_step"] + 1)
         self._obs = _obs_batch(raw_obs)
         self._flat_obs = after
         self._values = None  # the general path's cache is not kept here

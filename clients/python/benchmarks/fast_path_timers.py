@@ -1,0 +1,94 @@
+#!/usr/bin/env python3
+"""Where ShapedVecEnv's time goes inside a real SB3 training loop, fast path included.
+
+``profile_overhead.py`` wraps the bound critic to time it, which turns the one-call fast
+path off; this script leaves the wrapper as it is and times, at the instance level,
+the wrapped ``DummyVecEnv.step_wait``, ``ShapedVecEnv.step_wait`` and ``_fast_step``
+during an A2C ``learn(20000)`` on 8 CartPole-v1 envs with an embedded engine
+(alpha = beta = 0, so the shaped run learns exactly what the plain run learns), beside a
+plain run. Rounds alternate plain and shaped::
+
+    python clients/python/benchmarks/fast_path_timers.py --rounds 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from stable_baselines3 import A2C
+from stable_baselines3.common.env_util import make_vec_env
+
+import tamrm
+import tamrm.sb3
+
+
+def _timed(fn: Callable[..., Any], samples: list[int]) -> Callable[..., Any]:
+    clock = time.perf_counter_ns
+
+    def timed(*args: Any) -> Any:
+        t0 = clock()
+        try:
+            return fn(*args)
+        finally:
+            samples.append(clock() - t0)
+
+    return timed
+
+
+def run(engine: tamrm.Engine | None, timesteps: int) -> dict[str, Any]:
+    torch.set_num_threads(1)
+    venv = make_vec_env("CartPole-v1", n_envs=8, seed=0)
+    env: Any = venv
+    session = None
+    if engine is not None:
+        engine.create_task("timers", num_actions=2, alpha=0.0, beta=0.0)
+        session = engine.session("timers", 8)
+        env = tamrm.sb3.ShapedVecEnv(venv, session)
+    model = A2C("MlpPolicy", env, seed=0, device="cpu")
+    inner: list[int] = []
+    outer: list[int] = []
+    fast: list[int] = []
+    venv.step_wait = _timed(venv.step_wait, inner)  # type: ignore[method-assign]
+    if session is not None:
+        env.bind_model(model)
+        env._fast_step = _timed(env._fast_step, fast)
+        env.step_wait = _timed(env.step_wait, outer)
+    start = time.perf_counter()
+    model.learn(total_timesteps=timesteps)
+    elapsed = time.perf_counter() - start
+    if session is not None and engine is not None:
+        session.close()
+        engine.delete_task("timers")
+    return {"s": elapsed, "inner": inner, "outer": outer, "fast": fast}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--timesteps", type=int, default=20000)
+    ns = parser.parse_args()
+    steps = ns.timesteps // 8
+    us = 1e-3
+    with tamrm.Engine() as engine:
+        for r in range(ns.rounds):
+            plain, shaped = run(None, ns.timesteps), run(engine, ns.timesteps)
+            wrapper = (sum(shaped["outer"]) - sum(shaped["inner"])) / steps * us
+            fast = shaped["fast"]
+            print(
+                f"round {r + 1}: learn plain {plain['s']:.3f} s, shaped {shaped['s']:.3f} s "
+                f"(+{(shaped['s'] - plain['s']) / steps * 1e6:.0f} µs per vector step); "
+                f"DummyVecEnv.step_wait {sum(plain['inner']) / steps * us:.1f} / "
+                f"{sum(shaped['inner']) / steps * us:.1f} µs per step (plain / shaped); "
+                f"ShapedVecEnv's own work {wrapper:.1f} µs per step; fast path "
+                f"{len(fast)} of {steps} steps, p50 {statistics.median(fast) * us:.1f} µs, "
+                f"mean {statistics.fmean(fast) * us:.1f} µs"
+            )
+
+
+if __name__ == "__main__":
+    main()
