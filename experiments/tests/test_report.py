@@ -144,3 +144,25 @@ def test_labels_fit_in_a_markdown_table_cell():
     labels = [v.label for e in EXPERIMENTS.values() for v in e.variants]
     labels += [a.label for a in ARMS.values()] + [e.title for e in EXPERIMENTS.values()]
     assert not [label for label in labels if "|" in label]
+
+
+def test_a_large_variable_effect_that_fails_holm_is_not_called_small():
+    from tamrm_experiments.experiments.base import Claim
+    from tamrm_experiments.report import ClaimRow
+
+    claim = Claim("PBRS alone needs more", "10x", "pbrs", "total_steps", +1)
+    # Ten seeds far above plain on average, but spread widely.
+    arm = [10_000.0, 20_000.0, 900_000.0, 50_000.0, 700_000.0] * 2
+    plain = [9_800.0, 10_100.0, 9_900.0, 10_000.0, 10_200.0] * 2
+    row = ClaimRow("maze", "v", claim, arm, plain, planned=10)
+    row.measure()
+    assert row.p < 0.05 and row.diff.mean > 0
+    row.p_holm = 0.053  # as if corrected over many tests
+    word, why = row.verdict()
+    assert word == "does not hold"
+    assert "points the claimed way" in why and "smaller than" not in why
+    # The same row with a small estimate keeps the old sentence.
+    small = ClaimRow("maze", "v", claim, [10_050.0, 9_950.0] * 5, plain, planned=10)
+    small.measure()
+    small.p_holm = 1.0
+    assert "smaller than these seeds resolve" in small.verdict()[1]
