@@ -184,14 +184,22 @@ class ModelValueFn:
         self._no_grad = torch.no_grad
         self._tensors: tuple[Any, tuple[Any, ...], tuple[int, ...]] | None
         self._tensors = None
-        # (the policy it was built for, its native critic or None)
-        self._critic: tuple[Any, _MlpCritic | None] | None = None
+        # (the policy it was built for, its native critic or None, whether it is a Q-net)
+        self._critic: tuple[Any, _MlpCritic | None, bool] | None = None
 
     def _native_critic(self, policy: Any) -> _MlpCritic | None:
+        return self._critic_of(policy)[0]
+
+    def _critic_of(self, policy: Any) -> tuple[_MlpCritic | None, bool]:
+        """The native critic of ``policy`` (or ``None``) and whether it gives Q-values.
+
+        Both are kept per policy object: ``hasattr`` on a torch module that lacks the
+        attribute raises and catches an exception inside ``nn.Module``, a few µs a step.
+        """
         cached = self._critic
         if cached is None or cached[0] is not policy or (cached[1] and not cached[1].current()):
-            cached = self._critic = (policy, _MlpCritic.of(policy))
-        return cached[1]
+            cached = self._critic = (policy, _MlpCritic.of(policy), hasattr(policy, "q_net"))
+        return cached[1], cached[2]
 
     @property
     def native(self) -> bool:
@@ -201,8 +209,7 @@ class ModelValueFn:
     def __call__(self, obs: ObsBatch) -> npt.NDArray[Any]:
         """Q(s, ·) ``(B, num_actions)`` with a Q-network, else V(s) ``(B,)``."""
         policy = self.model.policy
-        q = hasattr(policy, "q_net")
-        critic = self._native_critic(policy) if self.fast else None
+        critic, q = self._critic_of(policy) if self.fast else (None, hasattr(policy, "q_net"))
         if critic is not None:
             out = critic(obs)
             return out if q else out.reshape(-1)
@@ -655,7 +662,7 @@ class ShapedVecEnv(VecEnvWrapper):
             if type(value_fn) is not ModelValueFn or not value_fn.fast:
                 return None
             policy = value_fn.model.policy
-            native = value_fn._native_critic(policy)
+            native, q = value_fn._critic_of(policy)
             if native is None or type(raw_obs) is not np.ndarray:
                 return None
             before = self._flat_obs
@@ -664,7 +671,7 @@ class ShapedVecEnv(VecEnvWrapper):
                     return None
                 before = _flat32(self._obs)
             after = _flat32(raw_obs)
-            critic, q = native._mlp, hasattr(policy, "q_net")
+            critic = native._mlp
         if type(rewards) is not np.ndarray:
             rewards = np.asarray(rewards, dtype=np.float64)
         terminated = truncated = None
