@@ -319,6 +319,16 @@ def _with_rows(obs: ObsBatch, infos: list[dict[str, Any]], rows: list[int]) -> O
     return out
 
 
+def _end_flags(
+    dones: npt.NDArray[np.bool_], done_rows: list[int], infos: list[dict[str, Any]]
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """SB3's ``dones`` split into (terminated, truncated) by ``TimeLimit.truncated``."""
+    truncated = np.zeros(len(dones), dtype=np.bool_)
+    for row in done_rows:
+        truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
+    return dones & ~truncated, truncated
+
+
 def _flat32(obs: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
     """A batch of observations as the native critic's rows: C-ordered float32 ``(B, -1)``."""
     x = np.asarray(obs, dtype=np.float32)
@@ -575,10 +585,7 @@ class ShapedVecEnv(VecEnvWrapper):
         # None: no env ended (all false), one array fewer to check and send.
         terminated = truncated = None
         if done_rows:
-            truncated = np.zeros(self.num_envs, dtype=np.bool_)
-            for row in done_rows:
-                truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
-            terminated = dones & ~truncated
+            terminated, truncated = _end_flags(dones, done_rows, infos)
 
         values = self._step_values(obs, infos, done_rows, truncated)
 
@@ -679,10 +686,7 @@ class ShapedVecEnv(VecEnvWrapper):
         critic_after = after
         if dones is not None:
             done_rows = np.flatnonzero(dones).tolist()
-            truncated = np.zeros(self.num_envs, dtype=np.bool_)
-            for row in done_rows:
-                truncated[row] = bool(infos[row].get("TimeLimit.truncated", False))
-            terminated = dones & ~truncated
+            terminated, truncated = _end_flags(dones, done_rows, infos)
             finals = [
                 row
                 for row in done_rows
