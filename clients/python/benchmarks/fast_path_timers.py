@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
-from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -26,18 +27,9 @@ from stable_baselines3.common.env_util import make_vec_env
 import tamrm
 import tamrm.sb3
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-def _timed(fn: Callable[..., Any], samples: list[int]) -> Callable[..., Any]:
-    clock = time.perf_counter_ns
-
-    def timed(*args: Any) -> Any:
-        t0 = clock()
-        try:
-            return fn(*args)
-        finally:
-            samples.append(clock() - t0)
-
-    return timed
+from profile_overhead import Timers
 
 
 def run(engine: tamrm.Engine | None, timesteps: int) -> dict[str, Any]:
@@ -50,21 +42,20 @@ def run(engine: tamrm.Engine | None, timesteps: int) -> dict[str, Any]:
         session = engine.session("timers", 8)
         env = tamrm.sb3.ShapedVecEnv(venv, session)
     model = A2C("MlpPolicy", env, seed=0, device="cpu")
-    inner: list[int] = []
-    outer: list[int] = []
-    fast: list[int] = []
-    venv.step_wait = _timed(venv.step_wait, inner)  # type: ignore[method-assign]
+    timers = Timers()
+    venv.step_wait = timers.wrap("inner", venv.step_wait)  # type: ignore[method-assign]
     if session is not None:
         env.bind_model(model)
-        env._fast_step = _timed(env._fast_step, fast)
-        env.step_wait = _timed(env.step_wait, outer)
+        env._fast_step = timers.wrap("fast", env._fast_step)
+        env.step_wait = timers.wrap("outer", env.step_wait)
     start = time.perf_counter()
     model.learn(total_timesteps=timesteps)
     elapsed = time.perf_counter() - start
     if session is not None and engine is not None:
         session.close()
         engine.delete_task("timers")
-    return {"s": elapsed, "inner": inner, "outer": outer, "fast": fast}
+    ns = timers.ns
+    return {"s": elapsed, **{k: ns.get(k, []) for k in ("inner", "outer", "fast")}}
 
 
 def main() -> None:
