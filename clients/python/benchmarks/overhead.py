@@ -15,10 +15,14 @@ Workloads:
 
 Variants (shaping backends): ``plain`` (no shaping), ``engine`` (``tamrm.Engine()``, in
 memory), ``engine-dir`` (``tamrm.Engine(data_dir)``, durable), ``remote`` (``tamrm.Client``
-to a local server without ``--data-dir``) and ``remote-dir`` (to a local server with
-``--data-dir``); with ``--server ADDR`` the two remote variants are replaced by one,
-``server``, on that address. Each run uses a fresh task (created before, deleted after the
-timing).
+to a local server without ``--data-dir``), ``remote-poll`` (the same with
+``busy_poll_us=200``) and ``remote-dir`` (to a local server with ``--data-dir``); with
+``--server ADDR`` the remote variants are replaced by one, ``server``, on that address.
+Each run uses a fresh task (created before, deleted after the timing). ``tcp-floor`` is
+the floor of every remote variant: no shaping, but one TCP round trip per vector step, of
+the size of a step's batch and answer, to a C echo on 127.0.0.1 (``tcp_echo.c``, built
+with the system C compiler): what any remote service costs at least on this machine,
+with no gRPC and no work in the peer.
 
 Every variant is run once as a warm-up, then ``--repeats`` times, **interleaved**: each
 repeat runs every variant once, in an order rotated by one each repeat, so that the
@@ -38,12 +42,15 @@ import argparse
 import contextlib
 import os
 import platform
+import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -52,18 +59,69 @@ import numpy as np
 import tamrm
 import tamrm.gym
 
-VARIANTS = ("plain", "engine", "engine-dir", "remote", "remote-dir")
+VARIANTS = ("plain", "engine", "engine-dir", "remote", "remote-poll", "remote-dir", "tcp-floor")
+#: ``busy_poll_us`` of the ``remote-poll`` variant.
+BUSY_POLL_US = 200
 LABELS = {
+    "tcp-floor": "floor: a TCP round trip to an echo, no shaping",
     "plain": "no shaping",
     "engine": "Engine, in memory",
     "engine-dir": "Engine, data dir",
     "remote": "Client, server in memory",
+    "remote-poll": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory",
     "remote-dir": "Client, server --data-dir",
     "server": "Client, --server",
 }
 
 # A shaping backend: tamrm.Engine or tamrm.Client (None: no shaping).
 Backend = Any
+
+
+class TcpFloor:
+    """The ``tcp-floor`` variant: a C echo process (``tcp_echo.c``) on 127.0.0.1; each run
+    opens a connection and makes one round trip per vector step."""
+
+    #: Bytes per env each way: a step's batch is about 28 bytes per env on the wire (env id,
+    #: action, reward, two flags, two values), its answer about 27 (reward, kNN reward,
+    #: potential, step, flag), plus a few bytes of message header.
+    BYTES_PER_ENV = 28
+    HEADER = 32
+
+    def __init__(self, tmp: str) -> None:
+        exe = os.path.join(tmp, "tcp_echo")
+        source = Path(__file__).with_name("tcp_echo.c")
+        cc = os.environ.get("CC", "cc")
+        subprocess.run([cc, "-O2", "-o", exe, str(source)], check=True)
+        self._proc = subprocess.Popen([exe], stdout=subprocess.PIPE, text=True)
+        assert self._proc.stdout is not None
+        self.port = int(self._proc.stdout.readline())
+
+    def close(self) -> None:
+        self._proc.kill()
+        self._proc.wait()
+
+    @contextlib.contextmanager
+    def round_trips(self, num_envs: int) -> Iterator[Callable[[], None]]:
+        """A connection; yields the function that makes one round trip on it."""
+        sock = socket.create_connection(("127.0.0.1", self.port))
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        payload = bytes(self.HEADER + self.BYTES_PER_ENV * num_envs)
+        buf = bytearray(len(payload))
+        view = memoryview(buf)
+
+        def round_trip() -> None:
+            sock.sendall(payload)
+            got = 0
+            while got < len(buf):
+                n = sock.recv_into(view[got:])
+                if n == 0:
+                    raise ConnectionError("tcp_echo closed the connection")
+                got += n
+
+        try:
+            yield round_trip
+        finally:
+            sock.close()
 
 
 def _vector_env(num_envs: int) -> gym.vector.SyncVectorEnv:
@@ -92,21 +150,40 @@ def _shaped(
 
 def vector_loop(backend: Backend | None, num_envs: int, steps: int, with_values: bool) -> float:
     """Seconds for ``steps`` vector steps of ``num_envs`` CartPoles."""
-    rng = np.random.default_rng(0)
-    with _shaped(backend, num_envs) as session:
+    actions = np.random.default_rng(0).integers(0, 2, size=(steps, num_envs))
+    with contextlib.ExitStack() as stack:
         env: gym.vector.VectorEnv = _vector_env(num_envs)
-        if session is not None:
+        after_step: Callable[[], None] = lambda: None  # noqa: E731
+        if isinstance(backend, TcpFloor):
+            after_step = stack.enter_context(backend.round_trips(num_envs))
+        elif (session := stack.enter_context(_shaped(backend, num_envs))) is not None:
             env = tamrm.gym.VectorShapedReward(
                 env, session, value_fn=_linear_value if with_values else None
             )
         env.reset(seed=0)
-        actions = rng.integers(0, 2, size=(steps, num_envs))
         start = time.perf_counter()
         for t in range(steps):
             env.step(actions[t])
+            after_step()
         elapsed = time.perf_counter() - start
         env.close()
     return elapsed
+
+
+def _round_trip_per_step(venv: Any, round_trip: Callable[[], None]) -> Any:
+    """``venv`` (an SB3 VecEnv) making one ``round_trip`` after every step."""
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class RoundTripPerStep(VecEnvWrapper):  # type: ignore[misc]
+        def reset(self) -> Any:
+            return self.venv.reset()
+
+        def step_wait(self) -> Any:
+            out = self.venv.step_wait()
+            round_trip()
+            return out
+
+    return RoundTripPerStep(venv)
 
 
 def a2c_run(
@@ -128,9 +205,14 @@ def a2c_run(
 
     torch.set_num_threads(1)
     config = {"alpha": 0.0, "beta": 0.0} if zero_weights else {}
-    with _shaped(backend, num_envs, **config) as session:
+    floor = backend if isinstance(backend, TcpFloor) else None
+    with contextlib.ExitStack() as stack:
+        session = None if floor else stack.enter_context(_shaped(backend, num_envs, **config))
         venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
-        env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
+        if floor is not None:
+            env = _round_trip_per_step(venv, stack.enter_context(floor.round_trips(num_envs)))
+        else:
+            env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
         model = A2C("MlpPolicy", env, seed=0, device="cpu")
         if isinstance(env, tamrm.sb3.ShapedVecEnv):
             env.bind_model(model)
@@ -178,7 +260,8 @@ def main() -> None:
         "--value-fn", action="store_true", help="also time the loop with a linear value_fn"
     )
     parser.add_argument(
-        "--variants", help=f"comma-separated subset of {','.join(VARIANTS)} (plain is always run)"
+        "--variants",
+        help=f"comma-separated subset of {','.join(VARIANTS)} (plain is always run)",
     )
     parser.add_argument("--quick", action="store_true", help="small sizes, 2 repeats")
     ns = parser.parse_args()
@@ -202,11 +285,19 @@ def main() -> None:
             elif name == "remote":
                 server = stack.enter_context(tamrm.local_server(in_memory=True))
                 backends[name] = stack.enter_context(tamrm.Client(server.address))
+            elif name == "remote-poll":
+                server = stack.enter_context(tamrm.local_server(in_memory=True))
+                client = tamrm.Client(server.address, busy_poll_us=BUSY_POLL_US)
+                backends[name] = stack.enter_context(client)
             elif name == "remote-dir":
                 server = stack.enter_context(tamrm.local_server())
                 backends[name] = stack.enter_context(tamrm.Client(server.address))
             elif name == "server":
                 backends[name] = stack.enter_context(tamrm.Client(ns.server))
+            elif name == "tcp-floor":
+                floor = TcpFloor(tmp)
+                stack.callback(floor.close)
+                backends[name] = floor
             elif name != "plain":
                 parser.error(f"unknown variant {name!r}")
 

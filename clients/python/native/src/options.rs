@@ -27,6 +27,9 @@ pub struct ChannelOptions {
     /// How long a session step keeps trying to resume on a broken stream (SPEC §9);
     /// `None`: it fails at once.
     resume_timeout: Option<Duration>,
+    /// How long a session step polls for its answer before it sleeps (zero: it sleeps
+    /// at once).
+    busy_poll: Duration,
 }
 
 impl Default for ChannelOptions {
@@ -40,9 +43,13 @@ impl Default for ChannelOptions {
             keepalive: Some(Duration::from_secs(30)),
             keepalive_timeout: Duration::from_secs(20),
             resume_timeout: Some(DEFAULT_RESUME_TIMEOUT),
+            busy_poll: Duration::ZERO,
         }
     }
 }
+
+/// The longest `busy_poll_us` accepted: one second.
+pub const MAX_BUSY_POLL_US: u64 = 1_000_000;
 
 /// How long a step resumes a broken session by default.
 pub const DEFAULT_RESUME_TIMEOUT: Duration = Duration::from_secs(60);
@@ -86,6 +93,7 @@ impl ChannelOptions {
         keepalive_secs = Some(30.0),
         keepalive_timeout_secs = 20.0,
         resume_timeout_secs = Some(DEFAULT_RESUME_TIMEOUT.as_secs_f64()),
+        busy_poll_us = 0,
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -98,7 +106,13 @@ impl ChannelOptions {
         keepalive_secs: Option<f64>,
         keepalive_timeout_secs: f64,
         resume_timeout_secs: Option<f64>,
+        busy_poll_us: u64,
     ) -> PyResult<ChannelOptions> {
+        if busy_poll_us > MAX_BUSY_POLL_US {
+            return Err(PyValueError::new_err(format!(
+                "busy_poll_us must be at most {MAX_BUSY_POLL_US} (one second), got {busy_poll_us}"
+            )));
+        }
         if let Some(pem) = &root_certificates {
             check_certs("root_certificates", pem)?;
         }
@@ -136,6 +150,7 @@ impl ChannelOptions {
             resume_timeout: resume_timeout_secs
                 .map(|s| seconds("resume_timeout_secs", s))
                 .transpose()?,
+            busy_poll: Duration::from_micros(busy_poll_us),
         };
         options.metadata_map()?;
         Ok(options)
@@ -157,6 +172,11 @@ impl ChannelOptions {
     /// How long a session step resumes a broken stream; `None`: not at all.
     pub fn resume_timeout(&self) -> Option<Duration> {
         self.resume_timeout
+    }
+
+    /// How long a session step polls for its answer before it sleeps.
+    pub fn busy_poll(&self) -> Duration {
+        self.busy_poll
     }
 
     /// The metadata sent on every call.

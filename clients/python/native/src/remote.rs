@@ -89,6 +89,8 @@ pub struct Channel {
     tls: bool,
     /// How long a session's step resumes a broken stream.
     resume_timeout: Option<Duration>,
+    /// How long a session's step polls for its answer before it sleeps.
+    busy_poll: Duration,
     rt: &'static Runtime,
 }
 
@@ -334,6 +336,7 @@ impl Channel {
             metadata: options.metadata_map()?,
             tls: options.uses_tls(),
             resume_timeout: options.resume_timeout(),
+            busy_poll: options.busy_poll(),
             rt,
         })
     }
@@ -528,6 +531,7 @@ impl Channel {
             num_envs,
             client_id: client_id.to_string(),
             resume_timeout: self.resume_timeout,
+            busy_poll: self.busy_poll,
             driver: Driver::new()?,
             tx: None,
             inbound: None,
@@ -555,6 +559,8 @@ pub(crate) struct RemoteStream {
     num_envs: u32,
     client_id: String,
     resume_timeout: Option<Duration>,
+    /// How long a step polls for its answer before it sleeps (`busy_poll_us`).
+    busy_poll: Duration,
     /// The stream's own connection and the runtime it runs on.
     driver: Driver,
     tx: Option<mpsc::Sender<proto::ShapeRequest>>,
@@ -749,12 +755,26 @@ impl RemoteStream {
             kind: Some(shape_request::Kind::Steps(batch.to_proto())),
         };
         self.driver.touch();
+        let busy_poll = self.busy_poll;
         let result = self.driver.rt.block_on(async {
             if tx.send(req).await.is_err() {
                 // The request stream ended: the answer (the status) says why.
             }
             let answer = inbound.message();
             tokio::pin!(answer);
+            // Busy polling: the stream's runtime is this thread's, so yielding lets it
+            // poll the socket without sleeping, and the vCPU stays awake for the
+            // answer instead of being woken for it.
+            if !busy_poll.is_zero() {
+                let until = Instant::now() + busy_poll;
+                while Instant::now() < until {
+                    tokio::select! {
+                        biased;
+                        r = &mut answer => return Ok(r),
+                        () = tokio::task::yield_now() => {}
+                    }
+                }
+            }
             loop {
                 tokio::select! {
                     r = &mut answer => return Ok(r),

@@ -84,6 +84,7 @@ class ChannelOptions:
         keepalive_secs: float | None = 30.0,
         keepalive_timeout_secs: float = 20.0,
         resume_timeout_secs: float | None = 60.0,
+        busy_poll_us: int = 0,
     ) -> None: ...
     @property
     def tls(self) -> bool: ...

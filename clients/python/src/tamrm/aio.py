@@ -187,7 +187,8 @@ class Client(AsyncClosing):
         **connection: How to connect, exactly as :class:`tamrm.Client`: ``metadata``,
             ``tls``, ``root_certificates``, ``certificate_chain``, ``private_key``,
             ``tls_server_name``, ``keepalive_secs``, ``keepalive_timeout_secs``,
-            ``api_key``, ``resume_timeout_secs`` (:class:`tamrm.ConnectionOptions`).
+            ``api_key``, ``resume_timeout_secs``, ``busy_poll_us``
+            (:class:`tamrm.ConnectionOptions`).
     """
 
     def __init__(
