@@ -12,6 +12,7 @@ no episode ends, so the pool does not change during the run). Clients:
 
 - ``engine``: ``tamrm.Engine()`` (in-process, its own task seeded the same way; no server);
 - ``native``: ``tamrm.Client`` (the native extension: tonic, GIL released);
+- ``native-poll``: the same with ``busy_poll_us=200`` (polls for the answer, no sleep);
 - ``aio``: ``tamrm.aio.Client`` of this checkout, under asyncio;
 - ``grpcio-sync`` / ``grpcio-aio``: the pure-grpcio ``tamrm.Client`` / ``tamrm.aio.Client``
   as they were before the native extension (commit ``32108c1``, extracted with
@@ -54,7 +55,9 @@ HERE = Path(__file__).resolve()
 REPO = HERE.parents[3]
 OLD_COMMIT = "32108c1"  # the last commit whose Python client was pure grpcio
 TASK = "bench/step_latency"
-CLIENTS = ("engine", "native", "aio", "grpcio-sync", "grpcio-aio", "rust")
+CLIENTS = ("engine", "native", "native-poll", "aio", "grpcio-sync", "grpcio-aio", "rust")
+#: ``busy_poll_us`` of the ``native-poll`` client.
+BUSY_POLL_US = 200
 
 
 # -- the workload (identical in every client) -------------------------------------------
@@ -175,8 +178,12 @@ def worker(ns: argparse.Namespace) -> dict[str, Any]:
             seed_pool(engine, TASK)
             with engine.session(TASK, ns.envs) as session:
                 lat, knn = sync_loop(session, data, ns.warmup, ns.steps)
-    elif name in ("native", "grpcio-sync"):
-        with tamrm.Client(ns.addr) as client, client.session(ns.task, ns.envs) as session:
+    elif name in ("native", "native-poll", "grpcio-sync"):
+        poll = {"busy_poll_us": BUSY_POLL_US} if name == "native-poll" else {}
+        with (
+            tamrm.Client(ns.addr, **poll) as client,  # type: ignore[arg-type]
+            client.session(ns.task, ns.envs) as session,
+        ):
             lat, knn = sync_loop(session, data, ns.warmup, ns.steps)
     elif name in ("aio", "grpcio-aio"):
         import tamrm.aio
@@ -334,6 +341,7 @@ def run_client(
 LABELS = {
     "engine": "`tamrm.Engine()` (in-process)",
     "native": "`tamrm.Client` (native, tonic)",
+    "native-poll": f"`tamrm.Client(busy_poll_us={BUSY_POLL_US})`",
     "aio": "`tamrm.aio.Client` (asyncio)",
     "grpcio-sync": f"pure-grpcio `tamrm.Client` (`{OLD_COMMIT}`)",
     "grpcio-aio": f"pure-grpcio `tamrm.aio.Client` (`{OLD_COMMIT}`)",
