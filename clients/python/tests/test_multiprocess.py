@@ -18,11 +18,15 @@ import tamrm.sb3
 
 
 def test_client_pickles_by_address_and_settings(server: tamrm.LocalServer, task_id: str) -> None:
-    with tamrm.Client(server.address, timeout=7.0, metadata=[("x-who", "me")]) as client:
+    with tamrm.Client(
+        server.address, timeout=7.0, metadata=[("x-who", "me")], busy_poll_us=150
+    ) as client:
         clone = pickle.loads(pickle.dumps(client))
         assert isinstance(clone, tamrm.Client)
         assert clone is not client
         assert (clone.target, clone.timeout) == (server.address, 7.0)
+        assert clone._connection == client._connection  # every setting, busy_poll_us too
+        assert clone._connection["busy_poll_us"] == 150
         clone.create_task(task_id, num_actions=2)
         assert client.get_task(task_id).task_id == task_id
         clone.close()
