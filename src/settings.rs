@@ -135,6 +135,11 @@ pub struct ServeArgs {
     /// port) [default: off].
     #[arg(long, env = "TAMRM_METRICS_LISTEN", value_name = "ADDR", value_parser = parse_addr)]
     pub metrics_listen: Option<SocketAddr>,
+    /// Threads of the async runtime that serves every connection [default: one per
+    /// CPU]. 1 suits a server that shares a small machine with the learner it serves
+    /// (see docs/configuration.md).
+    #[arg(long, env = "TAMRM_WORKER_THREADS", value_name = "N")]
+    pub worker_threads: Option<usize>,
 }
 
 /// The config file: every key optional.
@@ -163,6 +168,8 @@ pub struct FileSettings {
     /// Metrics address (`host:port`).
     #[serde(default, deserialize_with = "deserialize_addr")]
     pub metrics_listen: Option<SocketAddr>,
+    /// Threads of the async runtime.
+    pub worker_threads: Option<usize>,
 }
 
 /// Resolved server settings.
@@ -188,7 +195,12 @@ pub struct Settings {
     pub tls: TlsFiles,
     /// Where to serve Prometheus metrics; `None`: no metrics.
     pub metrics_listen: Option<SocketAddr>,
+    /// Threads of the async runtime; `None`: one per CPU.
+    pub worker_threads: Option<usize>,
 }
+
+/// The most runtime threads `worker_threads` may ask for.
+pub const MAX_WORKER_THREADS: usize = 1024;
 
 impl Default for Settings {
     fn default() -> Settings {
@@ -203,6 +215,7 @@ impl Default for Settings {
             api_keys: None,
             tls: TlsFiles::default(),
             metrics_listen: None,
+            worker_threads: None,
         }
     }
 }
@@ -230,6 +243,13 @@ impl Settings {
             }
             crate::store::RedisTarget::parse(url)
                 .map_err(|e| SettingsError(format!("store: {e}")))?;
+        }
+        if let Some(n) = s.worker_threads {
+            if !(1..=MAX_WORKER_THREADS).contains(&n) {
+                return Err(SettingsError(format!(
+                    "worker_threads must be from 1 to {MAX_WORKER_THREADS}, got {n}"
+                )));
+            }
         }
         if s.store_poll_ms == 0 {
             return Err(SettingsError("store_poll_ms must be at least 1".into()));
@@ -260,6 +280,7 @@ impl Settings {
             self.api_keys.clone_from(&f.api_keys);
         }
         self.metrics_listen = f.metrics_listen.or(self.metrics_listen);
+        self.worker_threads = f.worker_threads.or(self.worker_threads);
         if let Some(l) = &f.limits {
             self.limits.apply(l);
         }
@@ -285,6 +306,7 @@ impl Settings {
             self.api_keys.clone_from(&a.api_keys);
         }
         self.metrics_listen = a.metrics_listen.or(self.metrics_listen);
+        self.worker_threads = a.worker_threads.or(self.worker_threads);
         self.limits.apply(&a.limits);
         self.tls.apply(&a.tls);
     }
@@ -377,7 +399,7 @@ mod tests {
         let file = dir.path().join("tamrm.toml");
         std::fs::write(
             &file,
-            "listen = \"127.0.0.1:7000\"\ndata_dir = \"/from/file\"\nmetrics_listen = \"127.0.0.1:9000\"\n[limits]\nmax_tasks = 5\nmax_batch_entries = 9\n",
+            "listen = \"127.0.0.1:7000\"\ndata_dir = \"/from/file\"\nmetrics_listen = \"127.0.0.1:9000\"\nworker_threads = 3\n[limits]\nmax_tasks = 5\nmax_batch_entries = 9\n",
         )
         .unwrap();
         let file_arg = file.to_str().unwrap();
@@ -388,6 +410,7 @@ mod tests {
         let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
         assert_eq!(s.listen.port(), 7000);
         assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9000));
+        assert_eq!(s.worker_threads, Some(3));
         assert_eq!(s.data_dir.as_deref(), Some(Path::new("/from/file")));
         assert_eq!((s.limits.max_tasks, s.limits.max_batch_entries), (5, 9));
         assert_eq!(
@@ -398,8 +421,10 @@ mod tests {
         std::env::set_var("TAMRM_LISTEN", "127.0.0.1:7001");
         std::env::set_var("TAMRM_MAX_TASKS", "6");
         std::env::set_var("TAMRM_METRICS_LISTEN", "127.0.0.1:9001");
+        std::env::set_var("TAMRM_WORKER_THREADS", "2");
         let s = Settings::resolve(&parse(&["--config", file_arg])).unwrap();
         assert_eq!(s.listen.port(), 7001, "env beats file");
+        assert_eq!(s.worker_threads, Some(2));
         assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9001));
         assert_eq!(s.limits.max_tasks, 6);
         assert_eq!(
@@ -416,14 +441,27 @@ mod tests {
             "7",
             "--metrics-listen",
             "127.0.0.1:9002",
+            "--worker-threads",
+            "1",
         ]))
         .unwrap();
         assert_eq!(s.listen.port(), 0, "flags beat env");
+        assert_eq!(s.worker_threads, Some(1));
         assert_eq!(s.metrics_listen.map(|a| a.port()), Some(9002));
         assert_eq!(s.limits.max_tasks, 7);
         std::env::remove_var("TAMRM_LISTEN");
         std::env::remove_var("TAMRM_MAX_TASKS");
         std::env::remove_var("TAMRM_METRICS_LISTEN");
+        std::env::remove_var("TAMRM_WORKER_THREADS");
+        for bad in ["0", "1025"] {
+            let e = Settings::resolve(&parse(&["--worker-threads", bad]))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("worker_threads must be from 1 to 1024"),
+                "{bad}: {e}"
+            );
+        }
 
         let s = Settings::resolve(&parse(&["--listen", "localhost:7002"])).unwrap();
         assert_eq!(

@@ -212,6 +212,10 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     });
     tracing::info!("{}", settings.tls.describe());
     tracing::info!("listening on {addr}");
+    tracing::info!(
+        "runtime threads: {}",
+        tokio::runtime::Handle::current().metrics().num_workers()
+    );
     if let Some(path) = &settings.port_file {
         let tmp = path.with_extension("tmp");
         std::fs::write(&tmp, format!("{addr}\n"))

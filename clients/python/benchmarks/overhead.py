@@ -16,7 +16,8 @@ Workloads:
 Variants (shaping backends): ``plain`` (no shaping), ``engine`` (``tamrm.Engine()``, in
 memory), ``engine-dir`` (``tamrm.Engine(data_dir)``, durable), ``remote`` (``tamrm.Client``
 to a local server without ``--data-dir``), ``remote-poll`` (the same with
-``busy_poll_us=200``) and ``remote-dir`` (to a local server with ``--data-dir``); with
+``busy_poll_us=200``), ``remote-poll-1t`` (that, and the server with
+``--worker-threads 1``) and ``remote-dir`` (to a local server with ``--data-dir``); with
 ``--server ADDR`` the remote variants are replaced by one, ``server``, on that address.
 Each run uses a fresh task (created before, deleted after the timing). ``tcp-floor`` is
 the floor of every remote variant: no shaping, but one TCP round trip per vector step, of
@@ -59,7 +60,16 @@ import numpy as np
 import tamrm
 import tamrm.gym
 
-VARIANTS = ("plain", "engine", "engine-dir", "remote", "remote-poll", "remote-dir", "tcp-floor")
+VARIANTS = (
+    "plain",
+    "engine",
+    "engine-dir",
+    "remote",
+    "remote-poll",
+    "remote-poll-1t",
+    "remote-dir",
+    "tcp-floor",
+)
 #: ``busy_poll_us`` of the ``remote-poll`` variant.
 BUSY_POLL_US = 200
 LABELS = {
@@ -69,6 +79,7 @@ LABELS = {
     "engine-dir": "Engine, data dir",
     "remote": "Client, server in memory",
     "remote-poll": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory",
+    "remote-poll-1t": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory, --worker-threads 1",
     "remote-dir": "Client, server --data-dir",
     "server": "Client, --server",
 }
@@ -285,8 +296,9 @@ def main() -> None:
             elif name == "remote":
                 server = stack.enter_context(tamrm.local_server(in_memory=True))
                 backends[name] = stack.enter_context(tamrm.Client(server.address))
-            elif name == "remote-poll":
-                server = stack.enter_context(tamrm.local_server(in_memory=True))
+            elif name in ("remote-poll", "remote-poll-1t"):
+                args = ["--worker-threads", "1"] if name == "remote-poll-1t" else []
+                server = stack.enter_context(tamrm.local_server(in_memory=True, args=args))
                 client = tamrm.Client(server.address, busy_poll_us=BUSY_POLL_US)
                 backends[name] = stack.enter_context(client)
             elif name == "remote-dir":

@@ -73,3 +73,31 @@ def test_server_shutdown_surfaces_as_unavailable(server_binary: str) -> None:
         assert session.closed
         with pytest.raises(tamrm.Unavailable):
             c.get_task("x")
+
+
+def test_a_one_thread_server_serves_concurrent_durable_sessions(
+    tmp_path: Path, server_binary: str
+) -> None:
+    # --worker-threads 1: one runtime thread for every connection, with a data dir (so
+    # commits go through the store's group-commit writer) and four sessions stepping at
+    # once, each ending episodes. Nothing may wait for a second runtime thread.
+    import numpy as np
+    from streams import in_threads
+
+    args = ["--worker-threads", "1"]
+    with tamrm.local_server(binary=server_binary, data_dir=tmp_path / "d", args=args) as srv:
+        assert "runtime threads: 1" in srv.log()
+        with tamrm.Client(srv.address) as client:
+            client.create_task("one-thread", num_actions=2, pool_capacity=5)
+
+            def run(seed: int) -> None:
+                rng = np.random.default_rng(seed)
+                with client.session("one-thread", 3) as session:
+                    for t in range(120):
+                        ends = np.full(3, t % 20 == 19)
+                        session.step(rng.integers(0, 2, size=3), np.ones(3), ends)
+
+            in_threads(run, 4)
+            stats = client.get_task("one-thread").stats
+            assert stats.episodes_completed == 4 * 3 * 6
+            assert len(client.get_pool("one-thread").trajectories) == 5

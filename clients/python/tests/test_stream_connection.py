@@ -8,11 +8,11 @@ for longer than the server's keepalive interval plus timeout would lose its stre
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 import pytest
+from streams import in_threads
 
 import tamrm
 import tamrm.aio
@@ -44,24 +44,15 @@ def test_sessions_in_threads_have_their_own_connections(server: tamrm.LocalServe
     # is its own session's (the step index of each env counts that session's steps).
     with tamrm.Client(server.address) as client:
         client.create_task("threads-own-connections", num_actions=3)
-        errors: list[BaseException] = []
 
         def run(seed: int) -> None:
-            try:
-                rng = np.random.default_rng(seed)
-                with client.session("threads-own-connections", 4) as session:
-                    for t in range(300):
-                        result = session.step(rng.integers(0, 3, size=4), np.ones(4))
-                        assert (result.steps == t).all(), (seed, t, result.steps)
-            except BaseException as exc:  # reported below
-                errors.append(exc)
+            rng = np.random.default_rng(seed)
+            with client.session("threads-own-connections", 4) as session:
+                for t in range(300):
+                    result = session.step(rng.integers(0, 3, size=4), np.ones(4))
+                    assert (result.steps == t).all(), (seed, t, result.steps)
 
-        threads = [threading.Thread(target=run, args=(seed,)) for seed in range(4)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
-        assert not errors, errors
+        in_threads(run, 4)
         assert client.get_task("threads-own-connections").stats.steps_shaped == 4 * 300 * 4
 
 
