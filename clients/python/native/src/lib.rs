@@ -76,6 +76,7 @@ pub(crate) fn runtime() -> PyResult<&'static tokio::runtime::Runtime> {
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("StatusError", m.py().get_type::<StatusError>())?;
+    m.add("MAX_BUSY_POLL_US", options::MAX_BUSY_POLL_US)?;
     m.add_class::<engine::Engine>()?;
     m.add_class::<remote::Channel>()?;
     m.add_class::<options::ChannelOptions>()?;

@@ -217,8 +217,8 @@ def _auth_metadata(
     return out
 
 
-#: The longest ``busy_poll_us`` a client takes: one second.
-MAX_BUSY_POLL_US = 1_000_000
+#: The longest ``busy_poll_us`` a client takes (one second), the native extension's bound.
+MAX_BUSY_POLL_US: int = _native.MAX_BUSY_POLL_US
 
 
 def _busy_poll_us(value: object) -> int:

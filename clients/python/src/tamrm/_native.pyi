@@ -71,6 +71,8 @@ class Engine:
     @property
     def description(self) -> str: ...
 
+MAX_BUSY_POLL_US: int
+
 class ChannelOptions:
     def __init__(
         self,
