@@ -28,6 +28,11 @@ use tokio::sync::{mpsc, Barrier};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
+// The server runs in this process: give it the binary's allocator.
+#[cfg(feature = "mimalloc")]
+#[global_allocator]
+static ALLOCATOR: tamrm::ServerAllocator = tamrm::ServerAllocator;
+
 #[path = "common/workload.rs"]
 mod workload;
 use workload::{echo, step_batch, Rng};

@@ -4,6 +4,10 @@ use clap::Parser;
 use tamrm::settings::{Cli, Command, HealthcheckArgs, KeyArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
+#[cfg(feature = "mimalloc")]
+#[global_allocator]
+static ALLOCATOR: tamrm::ServerAllocator = tamrm::ServerAllocator;
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
