@@ -23,7 +23,11 @@ Each run uses a fresh task (created before, deleted after the timing). ``tcp-flo
 the floor of every remote variant: no shaping, but one TCP round trip per vector step, of
 the size of a step's batch and answer, to a C echo on 127.0.0.1 (``tcp_echo.c``, built
 with the system C compiler): what any remote service costs at least on this machine,
-with no gRPC and no work in the peer.
+with no gRPC and no work in the peer. Two variants split the Engine's cost:
+``wrapper-floor`` shapes nothing and does no I/O, it only wraps the env (in A2C an SB3
+``VecEnvWrapper`` that writes ``ShapedVecEnv``'s six info keys with constants; in the loop
+a pass-through gymnasium ``VectorWrapper``), and ``engine-novalues`` is ``engine`` without
+``bind_model`` (no critic evaluated, F = 0).
 
 Every variant is run once as a warm-up, then ``--repeats`` times, **interleaved**: each
 repeat runs every variant once, in an order rotated by one each repeat, so that the
@@ -69,6 +73,8 @@ VARIANTS = (
     "remote-poll-1t",
     "remote-dir",
     "tcp-floor",
+    "wrapper-floor",
+    "engine-novalues",
 )
 #: ``busy_poll_us`` of the ``remote-poll`` variant.
 BUSY_POLL_US = 200
@@ -77,6 +83,8 @@ LABELS = {
     "plain": "no shaping",
     "engine": "Engine, in memory",
     "engine-dir": "Engine, data dir",
+    "engine-novalues": "Engine, in memory, no values bound",
+    "wrapper-floor": "floor: a pass-through wrapper, no shaping",
     "remote": "Client, server in memory",
     "remote-poll": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory",
     "remote-poll-1t": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory, --worker-threads 1",
@@ -135,6 +143,17 @@ class TcpFloor:
             sock.close()
 
 
+class WrapperFloor:
+    """The ``wrapper-floor`` variant (see the module's docstring): no backend at all."""
+
+
+class NoValues:
+    """The ``engine-novalues`` variant: ``engine`` (an in-memory Engine), no values bound."""
+
+    def __init__(self, engine: tamrm.Engine) -> None:
+        self.engine = engine
+
+
 def _vector_env(num_envs: int) -> gym.vector.SyncVectorEnv:
     return gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1") for _ in range(num_envs)])
 
@@ -162,10 +181,14 @@ def _shaped(
 def vector_loop(backend: Backend | None, num_envs: int, steps: int, with_values: bool) -> float:
     """Seconds for ``steps`` vector steps of ``num_envs`` CartPoles."""
     actions = np.random.default_rng(0).integers(0, 2, size=(steps, num_envs))
+    if isinstance(backend, NoValues):
+        backend, with_values = backend.engine, False
     with contextlib.ExitStack() as stack:
         env: gym.vector.VectorEnv = _vector_env(num_envs)
         after_step: Callable[[], None] = lambda: None  # noqa: E731
-        if isinstance(backend, TcpFloor):
+        if isinstance(backend, WrapperFloor):
+            env = gym.vector.VectorWrapper(env)
+        elif isinstance(backend, TcpFloor):
             after_step = stack.enter_context(backend.round_trips(num_envs))
         elif (session := stack.enter_context(_shaped(backend, num_envs))) is not None:
             env = tamrm.gym.VectorShapedReward(
@@ -181,8 +204,9 @@ def vector_loop(backend: Backend | None, num_envs: int, steps: int, with_values:
     return elapsed
 
 
-def _round_trip_per_step(venv: Any, round_trip: Callable[[], None]) -> Any:
-    """``venv`` (an SB3 VecEnv) making one ``round_trip`` after every step."""
+def _round_trip_per_step(venv: Any, round_trip: Callable[[], None] | None) -> Any:
+    """``venv`` (an SB3 VecEnv) making one ``round_trip`` after every step; without one,
+    writing ``ShapedVecEnv``'s six info keys (constants) instead."""
     from stable_baselines3.common.vec_env import VecEnvWrapper
 
     class RoundTripPerStep(VecEnvWrapper):  # type: ignore[misc]
@@ -191,7 +215,14 @@ def _round_trip_per_step(venv: Any, round_trip: Callable[[], None]) -> Any:
 
         def step_wait(self) -> Any:
             out = self.venv.step_wait()
-            round_trip()
+            if round_trip is not None:
+                round_trip()
+                return out
+            for info, reward in zip(out[3], out[1].tolist(), strict=True):
+                info["original_reward"] = reward
+                info["knn_reward"] = info["potential"] = 0.0
+                info["shaping_step"] = info["pool_version"] = 0
+                info["knn_active"] = False
             return out
 
     return RoundTripPerStep(venv)
@@ -216,16 +247,21 @@ def a2c_run(
 
     torch.set_num_threads(1)
     config = {"alpha": 0.0, "beta": 0.0} if zero_weights else {}
-    floor = backend if isinstance(backend, TcpFloor) else None
+    bind = not isinstance(backend, NoValues)
+    if isinstance(backend, NoValues):
+        backend = backend.engine
+    floor = backend if isinstance(backend, TcpFloor | WrapperFloor) else None
     with contextlib.ExitStack() as stack:
         session = None if floor else stack.enter_context(_shaped(backend, num_envs, **config))
         venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
-        if floor is not None:
+        if isinstance(floor, TcpFloor):
             env = _round_trip_per_step(venv, stack.enter_context(floor.round_trips(num_envs)))
+        elif floor is not None:
+            env = _round_trip_per_step(venv, None)
         else:
             env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
         model = A2C("MlpPolicy", env, seed=0, device="cpu")
-        if isinstance(env, tamrm.sb3.ShapedVecEnv):
+        if bind and isinstance(env, tamrm.sb3.ShapedVecEnv):
             env.bind_model(model)
         start = time.perf_counter()
         model.learn(total_timesteps=timesteps)
@@ -291,6 +327,10 @@ def main() -> None:
         for name in variants:
             if name == "engine":
                 backends[name] = stack.enter_context(tamrm.Engine())
+            elif name == "engine-novalues":
+                backends[name] = NoValues(stack.enter_context(tamrm.Engine()))
+            elif name == "wrapper-floor":
+                backends[name] = WrapperFloor()
             elif name == "engine-dir":
                 backends[name] = stack.enter_context(tamrm.Engine(os.path.join(tmp, "engine")))
             elif name == "remote":

@@ -73,6 +73,9 @@ def test_overhead_benchmark_smoke(server_binary: str) -> None:
     assert "floor: a TCP round trip to an echo" in out
     assert "Client(busy_poll_us=200), server in memory" in out
     assert "Client(busy_poll_us=200), server in memory, --worker-threads 1" in out
+    assert "floor: a pass-through wrapper, no shaping" in out
+    assert "Engine, in memory, no values bound" in out
+    assert "learning DIFFERED" not in out
     # With alpha = beta = 0 every backend's run learns what the plain run learns.
     assert "(same learning)" in out and "default weights" in out
     assert "DIFFERED" not in out, out
