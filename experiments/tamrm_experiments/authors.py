@@ -38,7 +38,10 @@ def make_authors_env(spec: RunSpec, settings: dict[str, Any] | None = None) -> A
     if env.startswith("maze"):
         from tamrm_experiments.envs import MazeEnv, OneHotCell
 
-        maze = MazeEnv(max_steps=spec.budget.max_episode_steps)
+        maze = MazeEnv(
+            max_steps=spec.budget.max_episode_steps,
+            switch_start_after=spec.budget.switch_after,
+        )
         if (settings or {}).get("observation") == "onehot":
             return OneHotCell(maze)
         return CanvasCoords(maze)
@@ -125,6 +128,7 @@ def train_authors(
     record: Callable[[dict[str, Any]], None],
     gate_on_server: bool,
     settings: dict[str, Any] | None = None,
+    switch_task: Callable[[], Any] | None = None,
 ) -> dict[str, Any]:
     """Train ``spec``'s learner for its budget, shaping every step through ``session``.
 
@@ -132,7 +136,9 @@ def train_authors(
     knows). ``gate_on_server``: the task was created with ``gate_potential``; otherwise
     the loop applies the gate itself to the returned parts (a server without v1.1).
     ``settings``: the variant's settings to use instead of ``spec``'s (the pilots try
-    changes to a learner this way, ``tamrm_experiments.pilot``).
+    changes to a learner this way, ``tamrm_experiments.pilot``). ``switch_task``: called
+    after episode ``budget.switch_after`` (the modified maze, whose start then moves), it
+    returns the session of a new task with a fresh pool, used from then on.
     Returns totals (episodes, total_steps, stopped_by_steps).
     """
     exp = EXPERIMENTS[spec.experiment]
@@ -163,6 +169,7 @@ def train_authors(
     lengths: list[int] = []
     obs, _ = env.reset(seed=spec.seed)
     frozen = False
+    phase = 0
     for episode in range(1, budget.episodes + 1):
         if episode > 1:
             obs, _ = env.reset(seed=spec.seed if fixed_start else None)
@@ -244,7 +251,7 @@ def train_authors(
                 "truncated": int(truncated),
                 "success": int(truncated if success_is_truncation else terminated),
                 "score": scores[0] if scores else ep["env_return"],
-                "task_phase": 0,
+                "task_phase": phase,
                 "pool_version": pool_version,
                 "total_steps": total_steps,
             }
@@ -253,6 +260,14 @@ def train_authors(
         if freeze and not frozen and len(lengths) >= 100 and np.mean(lengths[-100:]) >= 195:
             learner.freeze()
             frozen = True
+        if budget.switch_after is not None and episode == budget.switch_after:
+            if switch_task is None:
+                raise ValueError(
+                    f"{spec.key}: the start moves after episode "
+                    f"{budget.switch_after}: give switch_task"
+                )
+            session = switch_task()
+            phase += 1
         if total_steps >= budget.max_total_steps:
             return {"episodes": episode, "total_steps": total_steps, "stopped_by_steps": True}
     env.close()

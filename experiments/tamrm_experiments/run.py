@@ -338,8 +338,24 @@ def run_one(
                 fh.flush()
                 progress(1)
 
-            with client.session(base_id, 1) as session:
-                totals = train_authors(spec, session, record, gate_on_server)
+            sessions = [client.session(base_id, 1)]
+
+            def new_task() -> Any:
+                # Modified maze: the start moved, a new task with a fresh pool, as in the
+                # clean loop (between episodes: no episode of the old session is open).
+                new_id = f"{base_id}/p{len(task_ids)}"
+                _create_task(client, new_id, n_actions, task_cfg)
+                task_ids.append(new_id)
+                sessions[-1].close()
+                sessions.append(client.session(new_id, 1))
+                return sessions[-1]
+
+            try:
+                totals = train_authors(
+                    spec, sessions[0], record, gate_on_server, switch_task=new_task
+                )
+            finally:
+                sessions[-1].close()
             episodes, total_steps = totals["episodes"], totals["total_steps"]
         else:
             if task_cfg.get("gate_potential") and not gate_on_server:

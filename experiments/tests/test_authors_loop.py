@@ -109,3 +109,40 @@ def test_the_tuned_maze_learner_sees_the_cell_one_hot(monkeypatch):
             assert dqn.learn_after == 1_000 and dqn.epsilon > 0.9  # decays from 1
         else:
             assert dqn.learn_after == 20_000 and dqn.epsilon == pytest.approx(0.1)
+
+
+def test_the_modified_maze_authors_run_moves_the_start_and_takes_a_fresh_pool(tmp_path):
+    import csv
+
+    from tamrm_experiments.authors import make_authors_env
+
+    spec = make_specs("quick", 1, ["maze_modified"], ["tamrm"], variants=["authors-tuned-3"])[0]
+    switch = spec.budget.switch_after
+    assert spec.fidelity == "authors" and switch is not None
+    env = make_authors_env(spec, {"observation": "onehot"})
+    starts = [env.reset()[1]["start"] for _ in range(switch + 2)]
+    assert starts[:switch] == [starts[0]] * switch
+    assert starts[switch:] == [starts[switch]] * 2 and starts[switch] != starts[0]
+
+    with tamrm.local_server() as server:
+        meta = run_one(spec, server.address, tmp_path)
+    with open(run_paths(tmp_path, spec)[0]) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == spec.budget.episodes
+    assert [int(r["task_phase"]) for r in rows] == [
+        0 if int(r["episode"]) <= switch else 1 for r in rows
+    ]
+    # A second task (a fresh pool) from the switch on; both were deleted at the end.
+    assert len(meta["task_ids"]) == 2 and meta["task_ids"][1].startswith(meta["task_ids"][0])
+    assert all(p["episodes_completed"] >= 1 for p in meta["final_pools"].values())
+    assert sum(p["episodes_completed"] for p in meta["final_pools"].values()) == len(rows)
+
+
+def test_the_authors_loop_refuses_a_switch_it_cannot_make():
+    from tamrm_experiments import authors
+
+    spec = make_specs("quick", 1, ["maze_modified"], ["plain"], variants=["authors-3"])[0]
+    with tamrm.local_server() as server, tamrm.Client(server.address) as client:
+        client.create_task("t", num_actions=4, **spec.task_config())
+        with client.session("t", 1) as session, pytest.raises(ValueError, match="switch_task"):
+            authors.train_authors(spec, session, lambda _row: None, True)

@@ -86,7 +86,10 @@ def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
     assert len({s.key for s in specs}) == len(specs)
     authors = make_specs("paper", seeds=1, fidelities=["authors"])
     assert authors and {s.fidelity for s in authors} == {"authors"}
-    assert {s.experiment for s in authors} == {"cartpole", "mountaincar", "maze"}
+    # Every experiment has both fidelities (issue 14).
+    assert {s.experiment for s in authors} == set(EXPERIMENTS)
+    clean = make_specs("paper", seeds=1, fidelities=["clean"])
+    assert {s.experiment for s in clean} == set(EXPERIMENTS)
     fixed = make_specs("paper", seeds=1, variants=["authors-fixed"], arms=["tamrm"])
     assert [s.key for s in fixed] == ["cartpole/authors-fixed/tamrm/seed0"]
     cfg = fixed[0].to_dict()

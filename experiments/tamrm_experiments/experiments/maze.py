@@ -12,7 +12,7 @@ from tamrm_experiments.experiments.base import (
     Variant,
 )
 
-__all__ = ["MAZE", "MAZE_SETUP", "Maze"]
+__all__ = ["AUTHORS_BUDGETS", "MAZE", "MAZE_SETUP", "Maze", "authors_variants"]
 
 #: What the maze and the modified maze share: environment, learner, shaping, budget.
 #: The learner is the pilot's (issue 14): the first report's DQN on the raw (x, y) cell
@@ -60,7 +60,9 @@ TUNED_MAZE_DQN = {
 }
 
 
-def _authors(pool: int, bug: bool, tuned: bool = False) -> Variant:
+def _authors(
+    pool: int, bug: bool, tuned: bool = False, budgets: dict[str, Budget] | None = None
+) -> Variant:
     if tuned:
         name = f"authors-tuned-{pool}"
         label = f"authors (their DQN tuned to learn, pool = k = {pool})"
@@ -89,7 +91,7 @@ def _authors(pool: int, bug: bool, tuned: bool = False) -> Variant:
             "observation_bug": bug,
             **(TUNED_MAZE_DQN if tuned else {}),
         },
-        AUTHORS_BUDGETS,
+        AUTHORS_BUDGETS if budgets is None else budgets,
         # |D| = k only shapes: the pool of 10 shares the plain runs of the pool of 3.
         plain_from=name.replace("-10", "-3") if pool != 3 else None,
     )
@@ -108,10 +110,18 @@ AUTHORS_BUDGETS = {
     "full": Budget(episodes=200, max_episode_steps=10_000, max_total_steps=2_100_000),
     "quick": Budget(episodes=3, max_episode_steps=200, max_total_steps=600),
 }
-AUTHORS_VARIANTS = (
-    *(_authors(pool, bug) for bug in (True, False) for pool in (3, 10)),
-    *(_authors(pool, False, tuned=True) for pool in (3, 10)),
-)
+
+
+def authors_variants(budgets: dict[str, Budget] | None = None) -> tuple[Variant, ...]:
+    """The authors' maze variants: their observation bug or not, tuned or not, |D| = k = 3
+    and 10; ``budgets`` replaces :data:`AUTHORS_BUDGETS` (the modified maze's)."""
+    return (
+        *(_authors(pool, bug, budgets=budgets) for bug in (True, False) for pool in (3, 10)),
+        *(_authors(pool, False, tuned=True, budgets=budgets) for pool in (3, 10)),
+    )
+
+
+AUTHORS_VARIANTS = authors_variants()
 
 
 class Maze(ExperimentDef):

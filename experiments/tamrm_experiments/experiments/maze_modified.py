@@ -16,7 +16,7 @@ from tamrm_experiments.experiments.base import (
     Metric,
     mean_or_nan,
 )
-from tamrm_experiments.experiments.maze import MAZE_SETUP
+from tamrm_experiments.experiments.maze import MAZE_SETUP, authors_variants
 
 __all__ = ["MAZE_MODIFIED", "MazeModified"]
 
@@ -75,5 +75,29 @@ MAZE_MODIFIED = MazeModified(
         ),
         "quick": Budget(episodes=6, max_episode_steps=200, max_total_steps=1_500, switch_after=3),
     },
-    variants=CLEAN_VARIANTS,
+    # The authors' variants are their maze's (their code has no modified maze): the same
+    # learner, shaping and overrides, the start moved after episode 100 of 200 and a
+    # fresh pool from then on, as in the clean variants.
+    variants=(
+        *CLEAN_VARIANTS,
+        *authors_variants(
+            {
+                "paper": Budget(
+                    episodes=200,
+                    max_episode_steps=10_000,
+                    max_total_steps=2_100_000,
+                    switch_after=100,
+                ),
+                "full": Budget(
+                    episodes=200,
+                    max_episode_steps=10_000,
+                    max_total_steps=2_100_000,
+                    switch_after=100,
+                ),
+                "quick": Budget(
+                    episodes=4, max_episode_steps=200, max_total_steps=800, switch_after=2
+                ),
+            }
+        ),
+    ),
 )
