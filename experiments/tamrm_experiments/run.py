@@ -273,6 +273,18 @@ def _make_callback(
     return EpisodeRecorder()
 
 
+def _next_task(
+    client: Any, base_id: str, task_ids: list[str], num_actions: int, cfg: dict[str, Any]
+) -> str:
+    """Create the run's next task (a fresh pool: the modified maze's start moved, paper
+    §IV-B), record it in ``task_ids`` and return its id. Called between episodes, so no
+    episode of the previous task's session is in progress."""
+    new_id = f"{base_id}/p{len(task_ids)}"
+    _create_task(client, new_id, num_actions, cfg)
+    task_ids.append(new_id)
+    return new_id
+
+
 def _create_task(client: Any, task_id: str, num_actions: int, cfg: dict[str, Any]) -> bool:
     """Create the task; return whether the server applies ``gate_potential`` itself.
 
@@ -341,11 +353,7 @@ def run_one(
             sessions = [client.session(base_id, 1)]
 
             def new_task() -> Any:
-                # Modified maze: the start moved, a new task with a fresh pool, as in the
-                # clean loop (between episodes: no episode of the old session is open).
-                new_id = f"{base_id}/p{len(task_ids)}"
-                _create_task(client, new_id, n_actions, task_cfg)
-                task_ids.append(new_id)
+                new_id = _next_task(client, base_id, task_ids, n_actions, task_cfg)
                 sessions[-1].close()
                 sessions.append(client.session(new_id, 1))
                 return sessions[-1]
@@ -424,11 +432,7 @@ def _run_sb3(
     )
 
     def switch_task(_episode: int) -> None:
-        # Modified maze: the start moved, a new task with a fresh pool (paper §IV-B).
-        # Called between episodes, so no episode of the old session is in progress.
-        new_id = f"{base_id}/p{len(task_ids)}"
-        _create_task(client, new_id, _num_actions(exp.env), task_cfg)
-        task_ids.append(new_id)
+        new_id = _next_task(client, base_id, task_ids, _num_actions(exp.env), task_cfg)
         shaped.session.close()
         shaped.session = client.session(new_id, 1)
 

@@ -3,6 +3,7 @@ with a fresh pool."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -16,7 +17,7 @@ from tamrm_experiments.experiments.base import (
     Metric,
     mean_or_nan,
 )
-from tamrm_experiments.experiments.maze import MAZE_SETUP, authors_variants
+from tamrm_experiments.experiments.maze import AUTHORS_BUDGETS, MAZE_SETUP, authors_variants
 
 __all__ = ["MAZE_MODIFIED", "MazeModified"]
 
@@ -76,27 +77,14 @@ MAZE_MODIFIED = MazeModified(
         "quick": Budget(episodes=6, max_episode_steps=200, max_total_steps=1_500, switch_after=3),
     },
     # The authors' variants are their maze's (their code has no modified maze): the same
-    # learner, shaping and overrides, the start moved after episode 100 of 200 and a
-    # fresh pool from then on, as in the clean variants.
+    # learner, shaping, overrides and budgets, the start moved halfway (after episode 100
+    # of 200) and a fresh pool from then on, as in the clean variants.
     variants=(
         *CLEAN_VARIANTS,
         *authors_variants(
             {
-                "paper": Budget(
-                    episodes=200,
-                    max_episode_steps=10_000,
-                    max_total_steps=2_100_000,
-                    switch_after=100,
-                ),
-                "full": Budget(
-                    episodes=200,
-                    max_episode_steps=10_000,
-                    max_total_steps=2_100_000,
-                    switch_after=100,
-                ),
-                "quick": Budget(
-                    episodes=4, max_episode_steps=200, max_total_steps=800, switch_after=2
-                ),
+                name: replace(budget, switch_after=budget.episodes // 2)
+                for name, budget in AUTHORS_BUDGETS.items()
             }
         ),
     ),
