@@ -23,7 +23,7 @@ pub mod core;
 /// their own process (`benches/loadgen.rs`), so that they measure what is deployed:
 /// mimalloc, whose thread-local heaps take the tonic and h2 buffers that one worker
 /// thread allocates and another frees without the lock traffic of glibc's malloc arenas
-/// (+19 % server env-steps/s at 256 entries × 4 streams; docs/benchmarks.md).
+/// (+16–25 % server env-steps/s at 256 entries × 4 streams; docs/benchmarks.md).
 /// Declare it with `#[global_allocator] static A: tamrm::ServerAllocator =
 /// tamrm::ServerAllocator;`.
 #[cfg(feature = "mimalloc")]
