@@ -6,7 +6,9 @@ path off; this script leaves the wrapper as it is and times, at the instance lev
 the wrapped ``DummyVecEnv.step_wait``, ``ShapedVecEnv.step_wait`` and ``_fast_step``
 during an A2C ``learn(20000)`` on 8 CartPole-v1 envs with an embedded engine
 (alpha = beta = 0, so the shaped run learns exactly what the plain run learns), beside a
-plain run. Rounds alternate plain and shaped::
+plain run. It also times the policy's forward pass and ``A2C.train`` in both runs: what
+they gain in the shaped run is cost the wrapper causes outside its own code (the same
+torch work, run after the wrapper's). Rounds alternate plain and shaped::
 
     python clients/python/benchmarks/fast_path_timers.py --rounds 3
 """
@@ -44,6 +46,8 @@ def run(engine: tamrm.Engine | None, timesteps: int) -> dict[str, Any]:
     model = A2C("MlpPolicy", env, seed=0, device="cpu")
     timers = Timers()
     venv.step_wait = timers.wrap("inner", venv.step_wait)  # type: ignore[method-assign]
+    model.policy.forward = timers.wrap("forward", model.policy.forward)
+    model.train = timers.wrap("train", model.train)  # type: ignore[method-assign]
     if session is not None:
         env.bind_model(model)
         env._fast_step = timers.wrap("fast", env._fast_step)
@@ -55,7 +59,10 @@ def run(engine: tamrm.Engine | None, timesteps: int) -> dict[str, Any]:
         session.close()
         engine.delete_task("timers")
     ns = timers.ns
-    return {"s": elapsed, **{k: ns.get(k, []) for k in ("inner", "outer", "fast")}}
+    return {
+        "s": elapsed,
+        **{k: ns.get(k, []) for k in ("inner", "outer", "fast", "forward", "train")},
+    }
 
 
 def main() -> None:
@@ -70,6 +77,10 @@ def main() -> None:
             plain, shaped = run(None, ns.timesteps), run(engine, ns.timesteps)
             wrapper = (sum(shaped["outer"]) - sum(shaped["inner"])) / steps * us
             fast = shaped["fast"]
+            # Per vector step, shaped minus plain: the same torch work, slower or not.
+            torch_extra = {
+                k: (sum(shaped[k]) - sum(plain[k])) / steps * us for k in ("forward", "train")
+            }
             print(
                 f"round {r + 1}: learn plain {plain['s']:.3f} s, shaped {shaped['s']:.3f} s "
                 f"(+{(shaped['s'] - plain['s']) / steps * 1e6:.0f} µs per vector step); "
@@ -77,7 +88,9 @@ def main() -> None:
                 f"{sum(shaped['inner']) / steps * us:.1f} µs per step (plain / shaped); "
                 f"ShapedVecEnv's own work {wrapper:.1f} µs per step; fast path "
                 f"{len(fast)} of {steps} steps, p50 {statistics.median(fast) * us:.1f} µs, "
-                f"mean {statistics.fmean(fast) * us:.1f} µs"
+                f"mean {statistics.fmean(fast) * us:.1f} µs; the same torch work per vector "
+                f"step, shaped minus plain: forward {torch_extra['forward']:+.1f} µs, "
+                f"train {torch_extra['train']:+.1f} µs"
             )
 
 
