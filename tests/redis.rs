@@ -515,3 +515,30 @@ async fn a_cluster_spreads_tasks_and_loses_nothing_acknowledged_when_a_node_is_k
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn episode_numbers_past_2_to_the_53_are_recorded_exactly() {
+    // Lua's numbers are doubles: counts above 2^53 must not go through them (a count
+    // stored as "9.2233720368547758e+18" broke every later resume of that client).
+    let redis = RedisServer::start();
+    let r = replica(&redis.url()).await;
+    let mut c = connect(r.addr()).await;
+    create(&mut c, "t", discrete(3, 8, 2, 1, 2)).await;
+    let mut eps = Episodes {
+        ended: [(1 << 63) + 5, (1 << 53) + 1],
+        ..Default::default()
+    };
+    let both_end = batch(&[0, 1], &[1.0, 2.0], &[true, true]);
+    let mut s = open_resumed(&mut c, "t", &eps).await;
+    assert_eq!(s.step(both_end.clone()).await.unwrap().pool_version, 2);
+    // The answer is "lost": the same batch again, from the same state, commits nothing.
+    drop(s);
+    let mut s = open_resumed(&mut c, "t", &eps).await;
+    assert_eq!(s.step(both_end.clone()).await.unwrap().pool_version, 2);
+    // The next episodes (one past each) are new ends.
+    eps.record(&both_end);
+    drop(s);
+    let mut s = open_resumed(&mut c, "t", &eps).await;
+    assert_eq!(s.step(both_end.clone()).await.unwrap().pool_version, 4);
+    assert_eq!(get_task(&mut c, "t").await.stats.unwrap().pool_version, 4);
+}

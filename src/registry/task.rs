@@ -16,7 +16,7 @@ use tokio::sync::{Mutex, OwnedMutexGuard};
 
 use crate::core::{ActionSeq, Pool, TaskConfig};
 use crate::error::Error;
-use crate::store::{Committed, Counters, PoolOp, Store, StoreError};
+use crate::store::{Committed, Counters, EndedEpisodes, PoolOp, Store, StoreError};
 
 /// Live statistics of a task (the proto's `TaskStats`).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -57,17 +57,6 @@ pub struct TaskHandle {
     store: Arc<dyn Store>,
     /// Per client id: per env, the number of episodes whose end was committed (SPEC §9).
     ended: parking_lot::Mutex<EndedEpisodes>,
-}
-
-/// How many client ids a task remembers for the no-double-commit rule at most; the
-/// oldest is forgotten first.
-pub const MAX_REMEMBERED_CLIENTS: usize = 65_536;
-
-/// The episode ends committed per client and env, bounded in clients.
-#[derive(Debug, Default)]
-struct EndedEpisodes {
-    by_client: std::collections::HashMap<Arc<str>, std::collections::HashMap<u32, u64>>,
-    order: std::collections::VecDeque<Arc<str>>,
 }
 
 /// Decrements a task's open-stream count when dropped.
@@ -227,27 +216,18 @@ impl TaskHandle {
 
     /// Whether episode `number` of `env` of `client` was already committed.
     pub fn already_ended(&self, client: &str, env: u32, number: u64) -> bool {
-        let ended = self.ended.lock();
-        ended
-            .by_client
-            .get(client)
-            .and_then(|envs| envs.get(&env))
-            .is_some_and(|&n| n > number)
+        self.ended.lock().contains(client, env, number)
     }
 
-    /// Learns from a store shared with other servers which episode ends of `client` it
-    /// committed (a stream that broke on another server is resumed here; SPEC §9).
+    /// Learns from the store which episode ends of `client` it committed: a store shared
+    /// with other servers (a stream that broke on another server is resumed here), or a
+    /// data dir this server (or an earlier run of it) wrote (SPEC §9).
     pub async fn learn_ended(&self, client: &str) -> Result<(), Error> {
-        if self.store.is_shared() {
-            let ends = self.store.ended_episodes(&self.key, client).await;
-            let ends = self.gone_is_not_found(ends)?;
+        let ends = self.store.ended_episodes(&self.key, client).await;
+        let ends = self.gone_is_not_found(ends)?;
+        if !ends.is_empty() {
             // Stored as counts: episode `n - 1` is the last one ended.
-            let ends: Vec<(u32, u64)> = ends
-                .into_iter()
-                .filter(|&(_, n)| n > 0)
-                .map(|(env, n)| (env, n - 1))
-                .collect();
-            self.mark_ended(client, &ends);
+            self.ended.lock().merge(client, ends);
         }
         Ok(())
     }
@@ -263,27 +243,6 @@ impl TaskHandle {
         })
     }
 
-    fn mark_ended(&self, client: &str, ends: &[(u32, u64)]) {
-        let mut ended = self.ended.lock();
-        let ended = &mut *ended;
-        if !ended.by_client.contains_key(client) {
-            if ended.order.len() >= MAX_REMEMBERED_CLIENTS {
-                if let Some(old) = ended.order.pop_front() {
-                    ended.by_client.remove(&old);
-                }
-            }
-            let key: Arc<str> = Arc::from(client);
-            ended.order.push_back(key.clone());
-            ended.by_client.insert(key, Default::default());
-        }
-        if let Some(envs) = ended.by_client.get_mut(client) {
-            for &(env, number) in ends {
-                let n = envs.entry(env).or_insert(0);
-                *n = (*n).max(number + 1);
-            }
-        }
-    }
-
     /// [`TaskHandle::commit`] for the episode ends of a batch: with `marks = (client,
     /// [(env, episode)])` they are remembered as committed (while the writer lock is
     /// still held) once the store acknowledged them.
@@ -295,7 +254,10 @@ impl TaskHandle {
     ) -> Result<Committed, Error> {
         let committed = self.commit_locked(&writer, ops).await?;
         if let Some((client, ends)) = marks {
-            self.mark_ended(client, ends);
+            let counts = ends
+                .iter()
+                .map(|&(env, number)| (env, number.saturating_add(1)));
+            self.ended.lock().merge(client, counts);
         }
         drop(writer);
         Ok(committed)

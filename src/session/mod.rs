@@ -267,7 +267,8 @@ impl StreamSession {
             next = i + 1;
             let env = entries[i].0;
             let number = self.episode_no[env];
-            self.episode_no[env] += 1;
+            // Saturating: a resumed count near 2^64 (a client's to send) cannot wrap.
+            self.episode_no[env] = number.saturating_add(1);
             if writer.is_none() {
                 // Plan this and every later episode end of the batch against the latest
                 // pool, privately, while holding the task's writer lock.

@@ -18,6 +18,7 @@
 //!   `docs/scaling.md`.
 
 mod disk;
+mod ends;
 mod memory;
 mod redis;
 #[cfg(test)]
@@ -31,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use crate::core::{ActionSeq, Pool, TaskConfig};
 
 pub use disk::{DiskStore, FORMAT_VERSION};
+pub use ends::{EndedEpisodes, MAX_REMEMBERED_CLIENTS};
 pub use memory::MemoryStore;
 pub use redis::{RedisOptions, RedisStore, RedisTarget};
 
@@ -256,7 +258,8 @@ pub trait Store: Send + Sync + 'static {
     }
     /// The episode ends of `client` the store committed on task `id`, as (env, episodes
     /// ended): what a server resuming that client's stream must not commit again
-    /// (SPEC §9; shared stores, others answer nothing).
+    /// (SPEC §9): a shared store's, or a data dir's from before a restart. The memory
+    /// store answers nothing (the registry itself remembers what this process did).
     async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
         let _ = (id, client);
         Ok(Vec::new())

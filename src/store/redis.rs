@@ -199,10 +199,16 @@ return 1
 
 /// The §6 update of a commit, atomically. KEYS: meta, traj, scores, ended. ARGV:
 /// incarnation, channel, task key, Δepisodes, Δsteps, end-record TTL (s), number of
-/// ops, then per op: kind ('offer' / 'reset'), score, trajectory bytes, env, episode
-/// ('' for no end record). Answers {1, version before, version after, next_seq before,
-/// per op 1 changed / 0 not / 2 a re-sent end}, or {0} if the task is gone.
+/// ops, then per op: kind ('offer' / 'reset'), score, trajectory bytes, env, episodes
+/// ended with this one (the episode's number + 1, saturating; '' for no end record).
+/// Answers {1, version before, version after, next_seq before, per op 1 changed / 0 not
+/// / 2 a re-sent end}, or {0} if the task is gone. Episode counts are u64 in decimal,
+/// compared as such (`at_least`): Lua's numbers are doubles, exact only below 2^53.
 const COMMIT: &str = r#"
+local function at_least(a, b)
+  if #a ~= #b then return #a > #b end
+  return a >= b
+end
 if redis.call('HGET', KEYS[1], 'incarnation') ~= ARGV[1] then return {0} end
 local m = redis.call('HMGET', KEYS[1], 'capacity', 'version', 'next_seq')
 local cap, version, next_seq = tonumber(m[1]), tonumber(m[2]), tonumber(m[3])
@@ -218,11 +224,11 @@ for op = 1, tonumber(ARGV[7]) do
     version = version + 1
     changed = 1
   else
-    local score, env, episode = tonumber(ARGV[i + 1]), ARGV[i + 3], ARGV[i + 4]
+    local score, env, count = tonumber(ARGV[i + 1]), ARGV[i + 3], ARGV[i + 4]
     local dup = false
     if env ~= '' then
       local n = redis.call('HGET', KEYS[4], env)
-      dup = n ~= false and tonumber(n) > tonumber(episode)
+      dup = n ~= false and at_least(n, count)
     end
     if dup then
       changed = 2
@@ -255,7 +261,7 @@ for op = 1, tonumber(ARGV[7]) do
         changed = 1
       end
       if env ~= '' then
-        redis.call('HSET', KEYS[4], env, tonumber(episode) + 1)
+        redis.call('HSET', KEYS[4], env, count)
         marked = true
       end
     end
@@ -475,10 +481,10 @@ impl RedisStore {
                         score: *score,
                         seq: 0,
                     });
-                    let (env, episode) = match end {
+                    let (env, count) = match end {
                         // A store that decides the end record needs one client per commit.
                         Some(e) if Some(&e.client) == client.as_ref() => {
-                            (e.env.to_string(), e.episode.to_string())
+                            (e.env.to_string(), e.episode.saturating_add(1).to_string())
                         }
                         _ => (String::new(), String::new()),
                     };
@@ -486,7 +492,7 @@ impl RedisStore {
                         .arg(score_text(*score))
                         .arg(bytes)
                         .arg(env)
-                        .arg(episode);
+                        .arg(count);
                 }
             }
         }

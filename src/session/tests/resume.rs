@@ -114,6 +114,116 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
     assert_eq!(t.stats().pool_version, 3);
 }
 
+/// A registry on the data dir `dir` (the store is closed when the registry goes, without
+/// a snapshot: as after kill -9).
+async fn on_disk(dir: &std::path::Path) -> (Registry, crate::store::DiskStore) {
+    let store = crate::store::DiskStore::open(dir).unwrap();
+    (
+        registry_with(Arc::new(store.clone()), Limits::default()).await,
+        store,
+    )
+}
+
+/// `client-1`'s session on task "t" of `r`: a first open (`None`), or one resuming env 0
+/// at episode `number` with `actions` so far (none: at its step 0).
+async fn client_1(r: &Registry, resume: Option<(&'static [u32], u64)>) -> StreamSession {
+    let (actions, episode) = resume.unwrap_or_default();
+    let listed = [Resume {
+        env_id: 0,
+        actions,
+        action_vectors: &[],
+        reward_sum: actions.len() as f64,
+        episode,
+    }];
+    let req = OpenRequest {
+        tenant: DEFAULT_TENANT,
+        task_id: "t",
+        num_envs: 1,
+        resume: if resume.is_some() { &listed } else { &[] },
+        client_id: "client-1",
+    };
+    StreamSession::open(r, &req).await.unwrap()
+}
+
+#[tokio::test]
+async fn a_data_dir_server_restarted_does_not_commit_a_re_sent_end_again() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let (r, _store) = on_disk(dir.path()).await;
+        let t = task(&r, "t", 3).await;
+        let mut s = client_1(&r, None).await;
+        s.step(&one(&[1], &[1.0], false)).await.unwrap();
+        s.step(&one(&[0], &[1.0], true)).await.unwrap();
+        assert_eq!(t.stats().pool_version, 1);
+    } // "crash": no graceful shutdown, the answer was lost
+    let (r, store) = on_disk(dir.path()).await;
+    let t = r.get(DEFAULT_TENANT, "t").unwrap();
+    assert_eq!(t.stats().pool_version, 1, "the commit survived");
+    let mut s = client_1(&r, Some((&[1], 0))).await;
+    let again = s.step(&one(&[0], &[1.0], true)).await.unwrap();
+    assert_eq!(again.outputs[0].step, 1, "shaped as the same step");
+    assert_eq!(
+        again.pool_version, 1,
+        "not committed twice after the restart"
+    );
+    assert_eq!(t.snapshot().len(), 1);
+    // The next episode (number 1) is committed as usual, and so is another client's.
+    s.step(&one(&[1], &[5.0], true)).await.unwrap();
+    assert_eq!(t.stats().pool_version, 2);
+    // The record survives a compaction too (folded into ends.json, the log emptied).
+    r.flush_counters().await;
+    drop((s, t, r, store));
+    let (r, _store) = on_disk(dir.path()).await;
+    let t = r.get(DEFAULT_TENANT, "t").unwrap();
+    let mut s = client_1(&r, Some((&[1], 1))).await;
+    s.step(&one(&[0], &[5.0], true)).await.unwrap();
+    assert_eq!(
+        t.stats().pool_version,
+        2,
+        "episode 1's end is not committed again"
+    );
+}
+
+#[tokio::test]
+async fn a_discarded_end_is_remembered_across_a_restart() {
+    for graceful in [true, false] {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let (r, store) = on_disk(dir.path()).await;
+            let t = task(&r, "t", 1).await;
+            t.offer(ActionSeq::Discrete(vec![1, 1]), 100.0)
+                .await
+                .unwrap();
+            let groups = store.commit_stats().groups;
+            let mut s = client_1(&r, None).await;
+            let out = s.step(&one(&[0], &[1.0], true)).await.unwrap();
+            assert_eq!(out.pool_version, 1, "discarded: the pool is full of better");
+            if graceful {
+                r.flush_counters().await;
+            } else {
+                // Logged in the background: wait for its group (no answer waits for it).
+                let start = std::time::Instant::now();
+                while store.commit_stats().groups == groups {
+                    assert!(start.elapsed().as_secs() < 10, "the end was never logged");
+                    tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+                }
+            }
+        }
+        let (r, _store) = on_disk(dir.path()).await;
+        let t = r.get(DEFAULT_TENANT, "t").unwrap();
+        t.reset_pool().await.unwrap();
+        let version = t.stats().pool_version;
+        // Re-sent after the restart, into an empty pool that would take it.
+        let mut s = client_1(&r, Some((&[], 0))).await;
+        s.step(&one(&[0], &[1.0], true)).await.unwrap();
+        assert_eq!(
+            (t.stats().pool_version, t.snapshot().len()),
+            (version, 0),
+            "graceful {graceful}: a discarded end is not offered again"
+        );
+    }
+}
+
 #[tokio::test]
 async fn an_invalid_resume_opens_nothing_and_names_the_field() {
     let (r, t, s) = setup(4, 1).await;

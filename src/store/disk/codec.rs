@@ -67,6 +67,22 @@ impl PoolFile {
     }
 }
 
+/// `tasks/<name>/ends.json`: the episode ends committed per client (SPEC §9), as of the
+/// last snapshot (the log's kind-2 records add to it). Absent: none (older data dirs).
+#[derive(Serialize, Deserialize)]
+pub(super) struct EndsFile {
+    pub format: u32,
+    pub clients: Vec<ClientEnds>,
+}
+
+/// One client's ended episodes in `ends.json`.
+#[derive(Serialize, Deserialize)]
+pub(super) struct ClientEnds {
+    pub client: String,
+    /// (env, episodes ended).
+    pub episodes_ended: Vec<(u32, u64)>,
+}
+
 /// The format a task, pool or trajectory file declares is the one this build reads.
 pub(super) fn check_format(format: u32) -> Result<(), String> {
     if format != FILE_FORMAT {

@@ -2,9 +2,10 @@
 //! commit log over the snapshots, fold the result into new snapshots and empty the log.
 //!
 //! Replay rules per record (docs/storage.md): a record of a task without a directory is
-//! ignored (the task was deleted, or moved out of `tasks/` by an operator); one whose
-//! version the snapshot already has is skipped; one that continues the task's version is
-//! applied; one that leaves a gap is corruption. A torn last group is dropped; anything
+//! ignored (the task was deleted, or moved out of `tasks/` by an operator); a pool change
+//! whose version the snapshot already has is skipped; one that continues the task's
+//! version is applied; one that leaves a gap is corruption. Records of ended episodes
+//! are merged into the task's `ends.json` (counts only grow, so any order is right). A torn last group is dropped; anything
 //! else that fails its checks is corruption, reported naming the log file.
 
 use std::collections::{HashMap, HashSet};
@@ -14,12 +15,12 @@ use std::sync::Arc;
 
 use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
 use super::files::{err, fsync_dir, read_json, remove_tmp_files, traj_path};
-use super::log::{scan, Scan};
-use super::snapshot::write_snapshot;
+use super::log::{scan, Record, Scan};
+use super::snapshot::{read_ends_file, write_ends_file, write_snapshot};
 use super::writer::{truncate, Log};
 use super::{checked, Entry, Shared, CREATING, DELETING};
 use crate::core::{Pool, Trajectory};
-use crate::store::{Counters, StoreError, StoredTask};
+use crate::store::{Counters, EndedEpisodes, StoreError, StoredTask};
 
 /// A task as its snapshot has it.
 struct Loaded {
@@ -27,6 +28,10 @@ struct Loaded {
     dir: PathBuf,
     /// The seqs `pool.json` lists.
     listed: Vec<u64>,
+    /// `ends.json`, then the log's records of ended episodes merged in.
+    ends: EndedEpisodes,
+    /// The log added to `ends`.
+    ends_changed: bool,
 }
 
 fn load_task(dir: &Path) -> Result<StoredTask, StoreError> {
@@ -108,10 +113,13 @@ fn load_snapshots(shared: &Shared) -> Result<Vec<Loaded>, StoreError> {
             ));
         }
         let listed = task.pool.seqs().to_vec();
+        let ends = read_ends_file(&path)?;
         out.push(Loaded {
             task,
             dir: path,
             listed,
+            ends,
+            ends_changed: false,
         });
     }
     fsync_dir(&tasks_dir, &shared.stats.syncs)?;
@@ -160,15 +168,25 @@ fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, 
                     path,
                     format!(
                         "group at offset {}, record {ri}, task {:?}: {m}",
-                        g.offset, rec.task
+                        g.offset,
+                        rec.task()
                     ),
                 )
             };
-            let Some(&i) = index.get(&rec.task) else {
-                if orphans.insert(&rec.task) {
-                    tracing::warn!(task = %rec.task, log = %path.display(), "ignoring commit log records of a task that has no directory (deleted, or moved out of tasks/)");
+            let Some(&i) = index.get(rec.task()) else {
+                if orphans.insert(rec.task()) {
+                    tracing::warn!(task = %rec.task(), log = %path.display(), "ignoring commit log records of a task that has no directory (deleted, or moved out of tasks/)");
                 }
                 continue;
+            };
+            let rec = match rec {
+                Record::Commit(c) => c,
+                Record::Ends(e) => {
+                    let t = &mut tasks[i];
+                    t.ends.merge(&e.client, e.counts.iter().copied());
+                    t.ends_changed = true;
+                    continue;
+                }
             };
             let task = &tasks[i].task;
             let st = states
@@ -259,6 +277,9 @@ pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, St
             &shared.stats.syncs,
         )?;
     }
+    for t in tasks.iter().filter(|t| t.ends_changed) {
+        write_ends_file(&t.dir, &t.ends, &shared.stats.syncs)?;
+    }
     {
         let mut entries = shared.tasks.lock();
         entries.clear();
@@ -270,6 +291,7 @@ pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, St
                     Arc::new(t.task.pool.clone()),
                     t.task.counters,
                     t.listed.clone(),
+                    t.ends.clone(),
                 ),
             );
         }

@@ -8,7 +8,12 @@
 //! record  kind u8 (1) | id length u32 | id | base version u64 | version u64 | next_seq u64
 //!         | episodes_completed u64 | steps_shaped u64 | k u32 | k seqs u64 (the pool after)
 //!         | m u32 | m × (length u32 | a trajectory file's bytes)   (the trajectories added)
+//! record  kind u8 (2) | id length u32 | id | client length u32 | client
+//!         | n u32 | n × (env u32 | episodes ended u64)   (SPEC §9's record of ended episodes)
 //! ```
+//!
+//! A kind-2 record goes with the kind-1 record of the change that ended those episodes,
+//! in the same group (logs written before it existed hold only kind 1).
 //!
 //! The CRC of a group covers its magic, lengths and records. A group is the unit of
 //! atomicity: the writer writes the next group only after the previous one is synced, so
@@ -29,6 +34,7 @@ const GROUP_MAGIC: &[u8; 4] = b"TGRP";
 /// magic, payload length, record count.
 const GROUP_HEAD: usize = 12;
 const KIND_COMMIT: u8 = 1;
+const KIND_ENDS: u8 = 2;
 
 /// The header of an empty log.
 pub(super) fn header() -> Vec<u8> {
@@ -37,10 +43,53 @@ pub(super) fn header() -> Vec<u8> {
     b
 }
 
+/// One record of the log.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) enum Record {
+    /// A pool change.
+    Commit(Commit),
+    /// Episode ends committed by a client.
+    Ends(Ends),
+}
+
+impl Record {
+    /// The task the record is about.
+    pub fn task(&self) -> &str {
+        match self {
+            Record::Commit(c) => &c.task,
+            Record::Ends(e) => &e.task,
+        }
+    }
+}
+
+/// The episode ends of one client that a change committed (or discarded), as counts per
+/// env: the no-double-commit record of SPEC §9, so that it survives a restart.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct Ends {
+    pub task: String,
+    pub client: String,
+    /// (env, episodes ended).
+    pub counts: Vec<(u32, u64)>,
+}
+
+/// Encodes a record of `client`'s ended episodes on `task`.
+pub(super) fn encode_ends(task: &str, client: &str, counts: &[(u32, u64)]) -> Vec<u8> {
+    let mut b = Vec::with_capacity(16 + task.len() + client.len() + 12 * counts.len());
+    b.push(KIND_ENDS);
+    put_bytes(&mut b, task.as_bytes());
+    put_bytes(&mut b, client.as_bytes());
+    put_len(&mut b, counts.len());
+    for &(env, count) in counts {
+        b.extend_from_slice(&env.to_le_bytes());
+        b.extend_from_slice(&count.to_le_bytes());
+    }
+    b
+}
+
 /// One pool change as it is logged: the pool after the change, given as the seqs it
 /// holds, the trajectories new since `base_version`, and the counters.
 #[derive(Debug, Clone, PartialEq)]
-pub(super) struct Record {
+pub(super) struct Commit {
     pub task: String,
     pub base_version: u64,
     pub version: u64,
@@ -146,10 +195,31 @@ impl<'a> Reader<'a> {
 }
 
 fn decode_record(r: &mut Reader) -> Result<Record, String> {
-    let kind = r.u8()?;
-    if kind != KIND_COMMIT {
-        return Err(format!("unknown record kind {kind}"));
+    match r.u8()? {
+        KIND_COMMIT => decode_commit(r).map(Record::Commit),
+        KIND_ENDS => decode_ends(r).map(Record::Ends),
+        kind => Err(format!(
+            "unknown record kind {kind} (written by a newer tamrm?)"
+        )),
     }
+}
+
+fn decode_ends(r: &mut Reader) -> Result<Ends, String> {
+    let task = String::from_utf8(r.bytes()?.to_vec()).map_err(|_| "a task id is not UTF-8")?;
+    let client = String::from_utf8(r.bytes()?.to_vec()).map_err(|_| "a client id is not UTF-8")?;
+    let n = r.len()?;
+    let mut counts = Vec::with_capacity(n.min(r.b.len() / 12));
+    for _ in 0..n {
+        counts.push((r.u32()?, r.u64()?));
+    }
+    Ok(Ends {
+        task,
+        client,
+        counts,
+    })
+}
+
+fn decode_commit(r: &mut Reader) -> Result<Commit, String> {
     let task = String::from_utf8(r.bytes()?.to_vec()).map_err(|_| "a task id is not UTF-8")?;
     let (base_version, version, next_seq) = (r.u64()?, r.u64()?, r.u64()?);
     let counters = Counters {
@@ -172,7 +242,7 @@ fn decode_record(r: &mut Reader) -> Result<Record, String> {
             "task {task:?}: version {version} does not follow base version {base_version}"
         ));
     }
-    Ok(Record {
+    Ok(Commit {
         task,
         base_version,
         version,
@@ -316,7 +386,9 @@ mod tests {
         let g = encode_group(&[&r, &r]);
         let s = scan(&log_of(&[g])).unwrap();
         assert!(s.torn.is_none());
-        let rec = &s.groups[0].records[1];
+        let Record::Commit(rec) = &s.groups[0].records[1] else {
+            panic!("a commit record")
+        };
         assert_eq!(
             (
                 rec.task.as_str(),
@@ -332,10 +404,34 @@ mod tests {
     }
 
     #[test]
+    fn ends_records_round_trip_beside_commits() {
+        let (base, after) = pools();
+        let c = encode_commit("t", &base, &after, Counters::default());
+        let e = encode_ends("t", "client-1", &[(0, 3), (7, u64::MAX)]);
+        let s = scan(&log_of(&[encode_group(&[&c, &e])])).unwrap();
+        let records = &s.groups[0].records;
+        assert!(matches!(&records[0], Record::Commit(r) if r.version == 3));
+        assert_eq!(
+            records[1],
+            Record::Ends(Ends {
+                task: "t".into(),
+                client: "client-1".into(),
+                counts: vec![(0, 3), (7, u64::MAX)],
+            })
+        );
+        assert_eq!(records[1].task(), "t");
+        let mut unknown = e.clone();
+        unknown[0] = 9;
+        let err = scan(&log_of(&[encode_group(&[&unknown])])).unwrap_err();
+        assert!(err.contains("unknown record kind 9"), "{err}");
+    }
+
+    #[test]
     fn a_torn_last_group_is_dropped_and_an_earlier_bad_one_is_corruption() {
         let (base, after) = pools();
-        let r = encode_commit("t", &base, &after, Counters::default());
-        let g = encode_group(&[&r]);
+        let c = encode_commit("t", &base, &after, Counters::default());
+        let e = encode_ends("t", "client", &[(0, 1), (1, 2)]);
+        let g = encode_group(&[&c, &e]);
         let full = log_of(&[g.clone(), g.clone()]);
         let first_end = HEADER_LEN as usize + g.len();
         for cut in first_end..full.len() {

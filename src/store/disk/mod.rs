@@ -38,14 +38,14 @@ use std::thread::JoinHandle;
 use parking_lot::{Condvar, Mutex};
 
 use super::memory::check_version;
-use super::{apply_ops, Committed, Counters, PoolOp, Store, StoreError, StoredTask};
+use super::{apply_ops, Committed, Counters, EndedEpisodes, PoolOp, Store, StoreError, StoredTask};
 use crate::core::{Pool, TaskConfig};
 pub use codec::FORMAT_VERSION;
 use codec::{check_root_format, RootFile, TaskFile, FILE_FORMAT, FORMAT_V1};
 pub(super) use codec::{decode_trajectory_bytes, encode_trajectory};
 use files::{dir_name, err, fsync_dir, read_json, remove_tmp_files, write_atomic};
-use snapshot::{write_pool_file, write_snapshot};
-use writer::{Change, Log, Queue, Stats};
+use snapshot::{write_ends_file, write_pool_file, write_snapshot};
+use writer::{Change, ClientEnds, Log, PoolChange, Queue, Stats};
 
 const CREATING: &str = ".creating-";
 const DELETING: &str = ".deleting-";
@@ -62,28 +62,91 @@ struct Entry {
     snap_version: u64,
     /// The seqs `pool.json` lists (their trajectory files exist).
     snap_seqs: Vec<u64>,
+    /// The episode ends committed per client (SPEC §9): `ends.json` and the log's
+    /// kind-2 records, so that a restarted server does not commit a re-sent end again.
+    ends: EndedEpisodes,
+    /// Merges into `ends` so far, and how many of them `ends.json` holds.
+    ends_gen: u64,
+    ends_saved: u64,
 }
 
 impl Entry {
-    /// A task whose snapshot is `pool`.
-    fn new(dir: PathBuf, pool: Arc<Pool>, counters: Counters, snap_seqs: Vec<u64>) -> Entry {
+    /// A task whose snapshot is `pool` and `ends`.
+    fn new(
+        dir: PathBuf,
+        pool: Arc<Pool>,
+        counters: Counters,
+        snap_seqs: Vec<u64>,
+        ends: EndedEpisodes,
+    ) -> Entry {
         Entry {
             dir,
             snap_version: pool.version(),
             pool,
             counters,
             snap_seqs,
+            ends,
+            ends_gen: 0,
+            ends_saved: 0,
         }
     }
 
     /// The log holds changes its snapshot lacks.
     fn is_dirty(&self) -> bool {
-        self.pool.version() != self.snap_version
+        self.pool.version() != self.snap_version || self.ends_gen != self.ends_saved
+    }
+
+    /// Records episode ends, per client (env, episodes ended).
+    fn merge_ends(&mut self, ends: &ClientEnds) {
+        for (client, counts) in ends {
+            self.ends.merge(client, counts.iter().copied());
+        }
+        if !ends.is_empty() {
+            self.ends_gen += 1;
+        }
+    }
+
+    /// What its snapshot lacks.
+    fn dirty_parts(&self) -> DirtyParts {
+        DirtyParts {
+            dir: self.dir.clone(),
+            pool: (self.pool.version() != self.snap_version)
+                .then(|| (self.pool.clone(), self.counters, self.snap_seqs.clone())),
+            ends: (self.ends_gen != self.ends_saved).then(|| (self.ends.clone(), self.ends_gen)),
+        }
     }
 
     fn snapshot_written(&mut self, version: u64, seqs: Vec<u64>) {
         self.snap_version = version;
         self.snap_seqs = seqs;
+    }
+}
+
+/// What one task's snapshot lacks: its pool (newer than `pool.json`: the pool, counters
+/// and the seqs `pool.json` lists) and its ended episodes (newer than `ends.json`).
+struct DirtyParts {
+    dir: PathBuf,
+    pool: Option<(Arc<Pool>, Counters, Vec<u64>)>,
+    ends: Option<(EndedEpisodes, u64)>,
+}
+
+impl DirtyParts {
+    /// Writes them, and notes in the task's entry what its snapshot now holds.
+    fn write(self, shared: &Shared, id: &str) -> Result<(), StoreError> {
+        let syncs = &shared.stats.syncs;
+        if let Some((pool, counters, listed)) = self.pool {
+            let seqs = write_snapshot(&self.dir, &pool, counters, &listed, syncs)?;
+            if let Some(e) = shared.tasks.lock().get_mut(id) {
+                e.snapshot_written(pool.version(), seqs);
+            }
+        }
+        if let Some((ends, generation)) = self.ends {
+            write_ends_file(&self.dir, &ends, syncs)?;
+            if let Some(e) = shared.tasks.lock().get_mut(id) {
+                e.ends_saved = generation;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -355,7 +418,13 @@ impl Shared {
         fsync_dir(&tasks, syncs)?;
         self.tasks.lock().insert(
             id.to_string(),
-            Entry::new(final_dir, Arc::new(pool), Counters::default(), Vec::new()),
+            Entry::new(
+                final_dir,
+                Arc::new(pool),
+                Counters::default(),
+                Vec::new(),
+                EndedEpisodes::default(),
+            ),
         );
         Ok(())
     }
@@ -379,16 +448,19 @@ impl Shared {
     /// once no task's snapshot lags behind it.
     fn save_counters(&self, id: &str, counters: Counters) -> Result<(), StoreError> {
         let mut log = self.io.lock();
-        let e = self.entry(id)?;
-        let seqs = write_snapshot(&e.dir, &e.pool, counters, &e.snap_seqs, &self.stats.syncs)?;
-        let all_clean = {
+        let parts = {
             let mut tasks = self.tasks.lock();
-            if let Some(e2) = tasks.get_mut(id) {
-                e2.counters = counters;
-                e2.snapshot_written(e.pool.version(), seqs);
-            }
-            tasks.values().all(|e| !e.is_dirty())
+            let e = tasks
+                .get_mut(id)
+                .ok_or_else(|| err(&self.tasks_dir(), format!("task {id:?} has no directory")))?;
+            e.counters = counters;
+            let mut parts = e.dirty_parts();
+            // The counters are written even when the pool did not change.
+            parts.pool = Some((e.pool.clone(), counters, e.snap_seqs.clone()));
+            parts
         };
+        parts.write(self, id)?;
+        let all_clean = self.tasks.lock().values().all(|e| !e.is_dirty());
         if all_clean && log.failed.is_none() {
             writer::truncate(self, &mut log)?;
         }
@@ -440,16 +512,24 @@ impl Store for DiskStore {
             ));
         }
         check_version(id, known, &base)?;
+        let ends = end_counts(&ops);
         let (pool, changed) = apply_ops(&base, ops);
         let pool = Arc::new(pool);
+        let end_records = ends
+            .iter()
+            .map(|(c, counts)| log::encode_ends(id, c, counts));
         if pool.version() != base.version() {
-            let record = log::encode_commit(id, &base, &pool, counters);
+            let mut records = vec![log::encode_commit(id, &base, &pool, counters)];
+            records.extend(end_records);
             let done = shared.submit(Change {
                 task: id.to_string(),
-                base_version: base.version(),
-                pool: pool.clone(),
-                counters,
-                record,
+                pool: Some(PoolChange {
+                    base_version: base.version(),
+                    pool: pool.clone(),
+                    counters,
+                }),
+                ends,
+                records,
             })?;
             done.await.map_err(|_| {
                 err(
@@ -457,8 +537,32 @@ impl Store for DiskStore {
                     "the commit log writer stopped before the commit was written",
                 )
             })??;
+        } else if !ends.is_empty() {
+            // Ends that changed no pool (discarded offers): remembered at once (a graceful
+            // shutdown writes them into `ends.json`), and logged without waiting for the
+            // sync: their answer costs no fsync, and a re-sent one of them, offered again
+            // after a crash in that moment, is at worst committed once.
+            if let Some(e) = shared.tasks.lock().get_mut(id) {
+                e.merge_ends(&ends);
+            }
+            let records = end_records.collect();
+            // Not awaited: the receiver is dropped, the writer logs it all the same.
+            drop(shared.submit(Change {
+                task: id.to_string(),
+                pool: None,
+                ends,
+                records,
+            })?);
         }
         Ok(Committed::new(pool, changed))
+    }
+
+    async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
+        let tasks = self.inner.shared.tasks.lock();
+        Ok(tasks
+            .get(id)
+            .map(|e| e.ends.counts(client))
+            .unwrap_or_default())
     }
 
     async fn save_counters(
@@ -470,6 +574,21 @@ impl Store for DiskStore {
         let id = id.to_string();
         self.run(move |s| s.save_counters(&id, counters)).await
     }
+}
+
+/// The episode ends the offers of `ops` name, per client: (env, episodes ended).
+fn end_counts(ops: &[PoolOp]) -> ClientEnds {
+    let mut out = ClientEnds::new();
+    for op in ops {
+        if let PoolOp::Offer { end: Some(m), .. } = op {
+            let count = (m.env, m.episode.saturating_add(1));
+            match out.iter_mut().find(|(c, _)| *c == m.client) {
+                Some((_, counts)) => counts.push(count),
+                None => out.push((m.client.clone(), vec![count])),
+            }
+        }
+    }
+    out
 }
 
 #[cfg(test)]

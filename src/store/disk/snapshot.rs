@@ -1,15 +1,16 @@
-//! A task's snapshot: `pool.json` and one file per trajectory, the format-1 layout. The
-//! commit log's changes are folded into it at compaction, at graceful shutdown and after
-//! recovery; `pool.json` is the snapshot's commit point.
+//! A task's snapshot: `pool.json` and one file per trajectory, the format-1 layout, and
+//! `ends.json` (SPEC §9's record of ended episodes). The commit log's changes are folded
+//! into it at compaction, at graceful shutdown and after recovery; `pool.json` is the
+//! pool's commit point.
 
 use std::collections::HashSet;
 use std::fs;
 use std::path::Path;
 
-use super::codec::{encode_trajectory, PoolFile};
-use super::files::{err, fsync_dir, traj_path, write_atomic, write_new, Syncs};
+use super::codec::{check_format, encode_trajectory, ClientEnds, EndsFile, PoolFile, FILE_FORMAT};
+use super::files::{err, fsync_dir, read_json, traj_path, write_atomic, write_new, Syncs};
 use crate::core::Pool;
-use crate::store::{Counters, StoreError};
+use crate::store::{Counters, EndedEpisodes, StoreError};
 
 /// Writes `pool.json` atomically.
 pub(super) fn write_pool_file(
@@ -54,4 +55,42 @@ pub(super) fn write_snapshot(
         }
     }
     Ok(pool.seqs().to_vec())
+}
+
+const ENDS_FILE: &str = "ends.json";
+
+/// Writes `ends.json` atomically.
+pub(super) fn write_ends_file(
+    dir: &Path,
+    ends: &EndedEpisodes,
+    syncs: &Syncs,
+) -> Result<(), StoreError> {
+    let path = dir.join(ENDS_FILE);
+    let file = EndsFile {
+        format: FILE_FORMAT,
+        clients: ends
+            .all()
+            .map(|(client, episodes_ended)| ClientEnds {
+                client: client.to_string(),
+                episodes_ended,
+            })
+            .collect(),
+    };
+    let bytes = serde_json::to_vec(&file).map_err(|e| err(&path, e))?;
+    write_atomic(&path, &bytes, syncs)
+}
+
+/// Reads `ends.json`; none recorded if it does not exist.
+pub(super) fn read_ends_file(dir: &Path) -> Result<EndedEpisodes, StoreError> {
+    let path = dir.join(ENDS_FILE);
+    let mut ends = EndedEpisodes::default();
+    if !path.exists() {
+        return Ok(ends);
+    }
+    let file: EndsFile = read_json(&path)?;
+    check_format(file.format).map_err(|m| err(&path, m))?;
+    for c in file.clients {
+        ends.merge(&c.client, c.episodes_ended);
+    }
+    Ok(ends)
 }

@@ -21,7 +21,6 @@ use tokio::sync::oneshot;
 
 use super::files::{err, Syncs};
 use super::log::{encode_group, HEADER_LEN};
-use super::snapshot::write_snapshot;
 use super::Shared;
 use crate::core::Pool;
 use crate::store::{Counters, StoreError};
@@ -30,14 +29,31 @@ use crate::store::{Counters, StoreError};
 /// forms a group of its own).
 const MAX_GROUP_BYTES: usize = 16 << 20;
 
-/// A pool change for the writer: the task, the version it was planned against, the
-/// resulting pool and counters, and its encoded log record.
+/// A change for the writer: a task's pool change, the episode ends it records (SPEC §9),
+/// or both, with their encoded log records.
 pub(super) struct Change {
     pub task: String,
+    /// The pool change; `None` for a record of discarded episode ends only (checked
+    /// against no version: it changes no pool).
+    pub pool: Option<PoolChange>,
+    pub ends: ClientEnds,
+    pub records: Vec<Vec<u8>>,
+}
+
+/// Episode ends per client: (client, [(env, episodes ended)]).
+pub(super) type ClientEnds = Vec<(Arc<str>, Vec<(u32, u64)>)>;
+
+/// A pool change: the version it was planned against, the resulting pool and counters.
+pub(super) struct PoolChange {
     pub base_version: u64,
     pub pool: Arc<Pool>,
     pub counters: Counters,
-    pub record: Vec<u8>,
+}
+
+impl Change {
+    fn bytes(&self) -> usize {
+        self.records.iter().map(Vec::len).sum()
+    }
 }
 
 /// A change waiting for the writer, with where to send the outcome.
@@ -162,7 +178,7 @@ fn take_group(jobs: &mut VecDeque<CommitReq>) -> Vec<CommitReq> {
     let mut bytes = 0;
     let mut out = Vec::with_capacity(jobs.len());
     while let Some(j) = jobs.front() {
-        let n = j.change.record.len();
+        let n = j.change.bytes();
         if !out.is_empty() && bytes + n > MAX_GROUP_BYTES {
             break;
         }
@@ -197,23 +213,24 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
                 .get(&c.task)
                 .copied()
                 .or_else(|| tasks.get(&c.task).map(|e| e.pool.version()));
-            match found {
-                None => {
+            match (found, &c.pool) {
+                (None, _) => {
                     let m = format!("task {:?} has no directory", c.task);
                     reply(req, Err(err(&shared.root.join("tasks"), m)));
                 }
-                Some(v) if v != c.base_version => {
+                (Some(v), Some(p)) if v != p.base_version => {
                     let e = StoreError::Conflict {
                         task: c.task.clone(),
-                        expected: c.base_version,
+                        expected: p.base_version,
                         found: v,
                     };
                     reply(req, Err(e));
                 }
-                Some(_) => {
-                    pending.insert(c.task.clone(), c.pool.version());
+                (Some(_), Some(p)) => {
+                    pending.insert(c.task.clone(), p.pool.version());
                     accepted.push(req);
                 }
+                (Some(_), None) => accepted.push(req),
             }
         }
     }
@@ -222,7 +239,7 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     }
     let records: Vec<&[u8]> = accepted
         .iter()
-        .map(|r| r.change.record.as_slice())
+        .flat_map(|r| r.change.records.iter().map(Vec::as_slice))
         .collect();
     let bytes = encode_group(&records);
     let written = log.file.write_all_at(&bytes, log.len).and_then(|()| {
@@ -242,14 +259,17 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     }
     log.len += bytes.len() as u64;
     shared.stats.groups.fetch_add(1, Ordering::Relaxed);
-    let n = accepted.len() as u64;
+    let n = accepted.iter().filter(|r| r.change.pool.is_some()).count() as u64;
     shared.stats.changes.fetch_add(n, Ordering::Relaxed);
     let mut tasks = shared.tasks.lock();
     for req in accepted {
         let c = &req.change;
         if let Some(e) = tasks.get_mut(&c.task) {
-            e.pool = c.pool.clone();
-            e.counters = c.counters;
+            if let Some(p) = &c.pool {
+                e.pool = p.pool.clone();
+                e.counters = p.counters;
+            }
+            e.merge_ends(&c.ends);
         }
         log.in_log.insert(c.task.clone());
         reply(req, Ok(()));
@@ -263,21 +283,10 @@ pub(super) fn checkpoint(shared: &Shared, log: &mut Log) -> Result<(), StoreErro
         .lock()
         .iter()
         .filter(|(_, e)| e.is_dirty())
-        .map(|(id, e)| {
-            (
-                id.clone(),
-                e.dir.clone(),
-                e.pool.clone(),
-                e.counters,
-                e.snap_seqs.clone(),
-            )
-        })
+        .map(|(id, e)| (id.clone(), e.dirty_parts()))
         .collect();
-    for (id, dir, pool, counters, listed) in dirty {
-        let seqs = write_snapshot(&dir, &pool, counters, &listed, &shared.stats.syncs)?;
-        if let Some(e) = shared.tasks.lock().get_mut(&id) {
-            e.snapshot_written(pool.version(), seqs);
-        }
+    for (id, parts) in dirty {
+        parts.write(shared, &id)?;
     }
     truncate(shared, log)
 }
