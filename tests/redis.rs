@@ -542,3 +542,45 @@ async fn episode_numbers_past_2_to_the_53_are_recorded_exactly() {
     assert_eq!(s.step(both_end.clone()).await.unwrap().pool_version, 4);
     assert_eq!(get_task(&mut c, "t").await.stats.unwrap().pool_version, 4);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_replica_reports_the_counters_of_every_replica() {
+    let redis = RedisServer::start();
+    let (a, b) = (replica(&redis.url()).await, replica(&redis.url()).await);
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    create(&mut ca, "t", discrete(3, 4, 2, 1, 2)).await;
+    let counters = |task: proto::Task| {
+        let s = task.stats.unwrap();
+        (s.episodes_completed, s.steps_shaped)
+    };
+    // A: 5 batches of 2 envs, both ending: 10 episodes, 10 steps.
+    let (mut s, _) = Stream::open(&mut ca, "t", 2).await.unwrap();
+    for i in 0..5 {
+        let r = i as f64;
+        s.step(batch(&[0, 1], &[r, r + 0.5], &[true, true]))
+            .await
+            .unwrap();
+    }
+    assert_eq!(counters(get_task(&mut ca, "t").await), (10, 10));
+    eventually("B reports A's counters", || {
+        let mut c = cb.clone();
+        async move { counters(get_task(&mut c, "t").await) == (10, 10) }
+    })
+    .await;
+    // B: steps that end no episode (no commit carries them) reach A too.
+    let (mut s, _) = Stream::open(&mut cb, "t", 2).await.unwrap();
+    for _ in 0..3 {
+        s.step(batch(&[2, 2], &[0.0, 0.0], &[false, false]))
+            .await
+            .unwrap();
+    }
+    eventually("A reports B's steps", || {
+        let mut c = ca.clone();
+        async move { counters(get_task(&mut c, "t").await) == (10, 16) }
+    })
+    .await;
+    assert_eq!(counters(get_task(&mut cb, "t").await), (10, 16));
+    let late = replica(&redis.url()).await;
+    let mut cl = connect(late.addr()).await;
+    assert_eq!(counters(get_task(&mut cl, "t").await), (10, 16));
+}

@@ -338,6 +338,35 @@ impl Registry {
         }
     }
 
+    /// For a store shared with other servers: every `every`, writes the counters of each
+    /// task this server counted steps or episodes in since the last time, and takes in
+    /// the other servers' ([`TaskHandle::sync_counters`]). `None` (and nothing runs) for a
+    /// store only this server writes.
+    pub fn sync_counters_every(
+        self: &Arc<Self>,
+        every: std::time::Duration,
+    ) -> Option<tokio::task::JoinHandle<()>> {
+        if !self.store.is_shared() {
+            return None;
+        }
+        let registry = Arc::downgrade(self);
+        Some(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(every);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tick.tick().await;
+                let Some(registry) = registry.upgrade() else {
+                    return;
+                };
+                for task in registry.all().into_iter().filter(|t| t.counters_changed()) {
+                    if let Err(e) = task.sync_counters().await {
+                        tracing::debug!(task = task.key(), error = %e, "could not sync the task's counters; retried at the next tick");
+                    }
+                }
+            }
+        }))
+    }
+
     /// For a store shared with other servers: refreshes this server's snapshot of a pool
     /// whenever the store announces a newer version. Returns `None` (and does nothing)
     /// for a store only this server writes. Runs until the store's notifications end.

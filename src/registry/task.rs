@@ -57,6 +57,8 @@ pub struct TaskHandle {
     store: Arc<dyn Store>,
     /// Per client id: per env, the number of episodes whose end was committed (SPEC §9).
     ended: parking_lot::Mutex<EndedEpisodes>,
+    /// The counters after the last [`TaskHandle::sync_counters`].
+    synced: parking_lot::Mutex<Counters>,
 }
 
 /// Decrements a task's open-stream count when dropped.
@@ -101,6 +103,7 @@ impl TaskHandle {
             open_streams: AtomicU32::new(0),
             store,
             ended: parking_lot::Mutex::new(EndedEpisodes::default()),
+            synced: parking_lot::Mutex::new(counters),
         }
     }
 
@@ -318,6 +321,41 @@ impl TaskHandle {
         self.store
             .save_counters(&self.key, self.snapshot(), self.counters())
             .await
+    }
+
+    /// On a store shared with other servers: writes this server's counter increments and
+    /// takes in the other servers' (as of their last write), so that every replica
+    /// reports the task's totals (SPEC §10). Nothing for other stores.
+    pub async fn sync_counters(&self) -> Result<(), Error> {
+        if !self.store.is_shared() {
+            return Ok(());
+        }
+        let _writer = self.writer.clone().lock_owned().await;
+        if self.deleted.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        let local = self.counters();
+        let totals = self.store.sync_counters(&self.key, local).await;
+        if let Some(totals) = self.gone_is_not_found(totals)? {
+            // Added, not stored: streams count steps without the writer lock.
+            let others = |t: u64, l: u64| t.saturating_sub(l);
+            self.episodes_completed.fetch_add(
+                others(totals.episodes_completed, local.episodes_completed),
+                Ordering::Relaxed,
+            );
+            self.steps_shaped.fetch_add(
+                others(totals.steps_shaped, local.steps_shaped),
+                Ordering::Relaxed,
+            );
+        }
+        *self.synced.lock() = self.counters();
+        Ok(())
+    }
+
+    /// Whether this server counted steps or episodes since the last
+    /// [`TaskHandle::sync_counters`].
+    pub fn counters_changed(&self) -> bool {
+        *self.synced.lock() != self.counters()
     }
 
     pub(super) async fn lock_for_delete(&self) -> OwnedMutexGuard<()> {

@@ -130,6 +130,8 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     let registry = Arc::new(registry);
     // Only a store shared with other servers announces changes.
     let _watcher = registry.watch_changes();
+    // And shares its counters, at the same staleness bound.
+    let _counters = registry.sync_counters_every(Duration::from_millis(settings.store_poll_ms));
 
     let listener = TcpListener::bind(settings.listen)
         .await

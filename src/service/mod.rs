@@ -137,6 +137,15 @@ impl Shaping for ShapingService {
         request: Request<proto::GetTaskRequest>,
     ) -> Result<Response<proto::Task>, Status> {
         let task = self.task(&request, &request.get_ref().task_id).await?;
+        // On a shared store, the counters over every replica (SPEC §10); if the store
+        // cannot be reached, this server's (a deleted task is NOT_FOUND).
+        match task.sync_counters().await {
+            Err(e @ Error::TaskNotFound { .. }) => return Err(e.into()),
+            Err(e) => {
+                tracing::warn!(task = %task.key(), error = %e, "could not sync the task's counters; answering this server's")
+            }
+            Ok(()) => {}
+        }
         Ok(Response::new(task_proto(&task)))
     }
 

@@ -264,6 +264,19 @@ pub trait Store: Send + Sync + 'static {
         let _ = (id, client);
         Ok(Vec::new())
     }
+    /// For a store shared with other servers: writes this server's counter increments of
+    /// task `id` (`counters` are its totals as this server knows them) and answers the
+    /// task's totals over every server, as they have written them, which this server
+    /// then reports. `None` for a store only this server writes (its counters are the
+    /// totals).
+    async fn sync_counters(
+        &self,
+        id: &str,
+        counters: Counters,
+    ) -> Result<Option<Counters>, StoreError> {
+        let _ = (id, counters);
+        Ok(None)
+    }
 }
 
 #[cfg(test)]

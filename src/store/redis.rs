@@ -813,6 +813,29 @@ impl Store for RedisStore {
         Ok(Some(keys))
     }
 
+    async fn sync_counters(
+        &self,
+        id: &str,
+        counters: Counters,
+    ) -> Result<Option<Counters>, StoreError> {
+        if self.delta(id, counters) != Counters::default() {
+            self.run_commit(id, &[], counters).await?;
+        }
+        let (episodes, steps): (Option<u64>, Option<u64>) = self
+            .conn
+            .clone()
+            .hmget(Keys::of(id).meta, &["episodes_completed", "steps_shaped"])
+            .await
+            .map_err(|e| self.fail("reading the counters", e))?;
+        let totals = Counters {
+            episodes_completed: episodes.unwrap_or(0),
+            steps_shaped: steps.unwrap_or(0),
+        };
+        // The caller takes the others' increments in: its counters are the totals now.
+        self.wrote(id, totals);
+        Ok(Some(totals))
+    }
+
     async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
         let incarnation = self.incarnation(id)?;
         let ended: HashMap<u32, u64> = self

@@ -91,6 +91,14 @@ impl Store for MeteredStore {
     async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
         self.inner.ended_episodes(id, client).await
     }
+
+    async fn sync_counters(
+        &self,
+        id: &str,
+        counters: Counters,
+    ) -> Result<Option<Counters>, StoreError> {
+        self.inner.sync_counters(id, counters).await
+    }
 }
 
 /// `store`, measured into `metrics` when there are metrics.
