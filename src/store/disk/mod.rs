@@ -60,6 +60,8 @@ struct Entry {
     counters: Counters,
     /// The pool version of the snapshot (`pool.json`).
     snap_version: u64,
+    /// The counters `pool.json` holds.
+    snap_counters: Counters,
     /// The seqs `pool.json` lists (their trajectory files exist).
     snap_seqs: Vec<u64>,
     /// The episode ends committed per client (SPEC §9): `ends.json` and the log's
@@ -82,6 +84,7 @@ impl Entry {
         Entry {
             dir,
             snap_version: pool.version(),
+            snap_counters: counters,
             pool,
             counters,
             snap_seqs,
@@ -116,8 +119,9 @@ impl Entry {
         }
     }
 
-    fn snapshot_written(&mut self, version: u64, seqs: Vec<u64>) {
+    fn snapshot_written(&mut self, version: u64, seqs: Vec<u64>, counters: Counters) {
         self.snap_version = version;
+        self.snap_counters = counters;
         self.snap_seqs = seqs;
     }
 }
@@ -137,7 +141,7 @@ impl DirtyParts {
         if let Some((pool, counters, listed)) = self.pool {
             let seqs = write_snapshot(&self.dir, &pool, counters, &listed, syncs)?;
             if let Some(e) = shared.tasks.lock().get_mut(id) {
-                e.snapshot_written(pool.version(), seqs);
+                e.snapshot_written(pool.version(), seqs, counters);
             }
         }
         if let Some((ends, generation)) = self.ends {
@@ -455,8 +459,11 @@ impl Shared {
                 .ok_or_else(|| err(&self.tasks_dir(), format!("task {id:?} has no directory")))?;
             e.counters = counters;
             let mut parts = e.dirty_parts();
-            // The counters are written even when the pool did not change.
-            parts.pool = Some((e.pool.clone(), counters, e.snap_seqs.clone()));
+            // The counters are written when they changed, even if the pool did not; a
+            // task untouched since its snapshot costs nothing (no fsync at shutdown).
+            if parts.pool.is_some() || counters != e.snap_counters {
+                parts.pool = Some((e.pool.clone(), counters, e.snap_seqs.clone()));
+            }
             parts
         };
         parts.write(self, id)?;
@@ -594,6 +601,48 @@ fn end_counts(ops: &[PoolOp]) -> ClientEnds {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[tokio::test]
+    async fn shutdown_writes_only_the_tasks_that_changed_since_their_snapshot() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = DiskStore::open(dir.path()).unwrap();
+        store.load().await.unwrap();
+        let config = TaskConfig::resolve(&crate::core::TaskConfigInput {
+            num_actions: 2,
+            ..Default::default()
+        })
+        .unwrap();
+        for id in ["a", "b", "c"] {
+            store.create_task(id, &config).await.unwrap();
+        }
+        let pool = Arc::new(Pool::new(config.pool_capacity as usize));
+        let syncs = || store.commit_stats().syncs;
+        let before = syncs();
+        for id in ["a", "b", "c"] {
+            store
+                .save_counters(id, pool.clone(), Counters::default())
+                .await
+                .unwrap();
+        }
+        assert_eq!(syncs(), before, "idle tasks cost no sync at shutdown");
+        let counted = Counters {
+            episodes_completed: 0,
+            steps_shaped: 5,
+        };
+        store
+            .save_counters("b", pool.clone(), counted)
+            .await
+            .unwrap();
+        assert!(syncs() > before, "new counters are written");
+        let after = syncs();
+        store.save_counters("b", pool, counted).await.unwrap();
+        assert_eq!(syncs(), after, "and only once");
+        drop(store);
+        let store = DiskStore::open(dir.path()).unwrap();
+        let b = store.load().await.unwrap();
+        let b = b.iter().find(|t| t.id == "b").unwrap();
+        assert_eq!(b.counters, counted);
+    }
 
     #[test]
     fn a_data_dir_opens_once_at_a_time() {
