@@ -526,3 +526,38 @@ async fn sighup_reloads_keys_without_dropping_streams() {
         "a key was logged: {log}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_task_quota_counts_the_tenants_tasks_on_every_replica() {
+    let redis = common::RedisServer::start();
+    let dir = tempfile::tempdir().unwrap();
+    let file = key_file(
+        dir.path(),
+        &[("q", "admin")],
+        "[tenants.q]\nmax_tasks = 2\n",
+    );
+    let url = redis.url();
+    let replica = |url: String, file: std::path::PathBuf| {
+        start_server(None, move |s| {
+            s.api_keys = Some(file);
+            s.store = Some(url);
+        })
+    };
+    let a = replica(url.clone(), file.clone()).await;
+    let b = replica(url, file).await;
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    let q = key("q", "admin");
+    call(&mut ca, "CreateTask", Some(&q), "a").await.unwrap();
+    call(&mut ca, "CreateTask", Some(&q), "b").await.unwrap();
+    // B holds none of them, but the store does: the tenant is at its quota.
+    let e = call(&mut cb, "CreateTask", Some(&q), "c")
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("max_tasks = 2"), "{}", e.message());
+    // Creating an existing task again is no new task, on any replica.
+    call(&mut cb, "CreateTask", Some(&q), "b").await.unwrap();
+    // A deletion on one replica frees the quota on the others.
+    call(&mut ca, "DeleteTask", Some(&q), "a").await.unwrap();
+    call(&mut cb, "CreateTask", Some(&q), "c").await.unwrap();
+}

@@ -137,7 +137,14 @@ impl Registry {
             )));
         }
         if let Some(max) = tenant_max_tasks {
-            if self.count(tenant) >= max {
+            let held = match self.store.task_ids().await? {
+                // A store shared with other servers: the tenant's tasks on every replica,
+                // unless the task exists there already (creating it again adds none).
+                Some(keys) if keys.contains(&key) => None,
+                Some(keys) => Some(keys.iter().filter(|k| split_key(k).0 == tenant).count()),
+                None => Some(self.count(tenant)),
+            };
+            if held.is_some_and(|n| n >= max) {
                 return Err(Error::ResourceExhausted(format!(
                     "task quota reached: tenant {tenant:?} may hold at most max_tasks = {max} tasks"
                 )));
