@@ -553,13 +553,17 @@ impl Store for DiskStore {
                 e.merge_ends(&ends);
             }
             let records = end_records.collect();
-            // Not awaited: the receiver is dropped, the writer logs it all the same.
-            drop(shared.submit(Change {
+            // Not awaited (the writer logs it all the same), and best effort: a store
+            // that is closing answers the discarded ends regardless.
+            let queued = shared.submit(Change {
                 task: id.to_string(),
                 pool: None,
                 ends,
                 records,
-            })?);
+            });
+            if let Err(e) = queued {
+                tracing::debug!(task = id, error = %e, "episode ends not logged");
+            }
         }
         Ok(Committed::new(pool, changed))
     }
