@@ -242,7 +242,14 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
         .flat_map(|r| r.change.records.iter().map(Vec::as_slice))
         .collect();
     let bytes = encode_group(&records);
+    // A group of discarded episode ends only is written without a sync of its own: it
+    // survives the process (kill -9 included) in the page cache and is made durable by
+    // the next group's fdatasync, so it never delays the pool changes behind it.
+    let sync = accepted.iter().any(|r| r.change.pool.is_some());
     let written = log.file.write_all_at(&bytes, log.len).and_then(|()| {
+        if !sync {
+            return Ok(());
+        }
         shared.stats.syncs.add();
         log.file.sync_data()
     });
