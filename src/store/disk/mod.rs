@@ -210,7 +210,8 @@ pub struct CommitStats {
     /// Every fsync and fdatasync issued (log groups, log truncations, snapshots, task
     /// creation and deletion, the data dir marker).
     pub syncs: u64,
-    /// Groups written to the log, one fdatasync each.
+    /// Groups written to the log, one fdatasync each (but a group of discarded episode
+    /// ends only, written without one: storage.md).
     pub groups: u64,
     /// Pool changes written to the log (commits that changed a pool).
     pub changes: u64,
