@@ -547,9 +547,10 @@ impl Store for DiskStore {
             })??;
         } else if !ends.is_empty() {
             // Ends that changed no pool (discarded offers): remembered at once (a graceful
-            // shutdown writes them into `ends.json`), and logged without waiting for the
-            // sync: their answer costs no fsync, and a re-sent one of them, offered again
-            // after a crash in that moment, is at worst committed once.
+            // shutdown writes them into `ends.json`), and logged in a group without a sync
+            // of its own (storage.md): their answer costs no fsync, and a re-sent one of
+            // them, offered again after an OS crash before the next sync, is at worst
+            // committed once.
             if let Some(e) = shared.tasks.lock().get_mut(id) {
                 e.merge_ends(&ends);
             }
