@@ -5,8 +5,9 @@
 //! ignored (the task was deleted, or moved out of `tasks/` by an operator); a pool change
 //! whose version the snapshot already has is skipped; one that continues the task's
 //! version is applied; one that leaves a gap is corruption. Records of ended episodes
-//! are merged into the task's `ends.json` (counts only grow, so any order is right). A torn last group is dropped; anything
-//! else that fails its checks is corruption, reported naming the log file.
+//! are merged into the task's `ends.json` (counts only grow, so any order is right). A
+//! torn last group is dropped; anything else that fails its checks is corruption,
+//! reported naming the log file.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;

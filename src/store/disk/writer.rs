@@ -272,11 +272,12 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     for req in accepted {
         let c = &req.change;
         if let Some(e) = tasks.get_mut(&c.task) {
+            // Ends that changed no pool were merged when they were queued (commit).
             if let Some(p) = &c.pool {
                 e.pool = p.pool.clone();
                 e.counters = p.counters;
+                e.merge_ends(&c.ends);
             }
-            e.merge_ends(&c.ends);
         }
         log.in_log.insert(c.task.clone());
         reply(req, Ok(()));
