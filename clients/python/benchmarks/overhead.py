@@ -31,10 +31,13 @@ a pass-through gymnasium ``VectorWrapper``), and ``engine-novalues`` is ``engine
 
 Every variant is run once as a warm-up, then ``--repeats`` times, **interleaved**: each
 repeat runs every variant once, in an order rotated by one each repeat, so that the
-machine's load drifts over all variants alike. The table (markdown, to paste into
-docs/python.md) gives per workload and variant the median time, the throughput, the
-median over repeats of the overhead against that repeat's plain run, and the overhead per
-vector step::
+machine's load drifts over all variants alike. The A2C runs go further (``--a2c-turn``,
+:func:`a2c_turns`): in each repeat every variant's model is built in one process and they
+learn in turns of 400 timesteps (about a quarter of a second), so that even the drift of
+this machine's speed within a run, tens of percent over seconds, falls on all alike.
+The table (markdown, to paste into docs/python.md) gives per workload and variant the
+median time, the throughput, the median over repeats of the overhead against that repeat's
+plain run, and the overhead per vector step::
 
     python clients/python/benchmarks/overhead.py            # full (5 repeats)
     python clients/python/benchmarks/overhead.py --quick    # a fast smoke run
@@ -47,6 +50,7 @@ import argparse
 import contextlib
 import os
 import platform
+import random
 import socket
 import statistics
 import subprocess
@@ -228,6 +232,41 @@ def _round_trip_per_step(venv: Any, round_trip: Callable[[], None] | None) -> An
     return RoundTripPerStep(venv)
 
 
+def _a2c_model(
+    stack: contextlib.ExitStack, backend: Backend | None, num_envs: int, zero_weights: bool
+) -> tuple[Any, Any]:
+    """An A2C model on ``num_envs`` CartPole-v1 envs shaped by ``backend`` (its session and
+    task closed by ``stack``), and its env."""
+    from stable_baselines3 import A2C
+    from stable_baselines3.common.env_util import make_vec_env
+
+    import tamrm.sb3
+
+    config = {"alpha": 0.0, "beta": 0.0} if zero_weights else {}
+    bind = not isinstance(backend, NoValues)
+    if isinstance(backend, NoValues):
+        backend = backend.engine
+    floor = backend if isinstance(backend, TcpFloor | WrapperFloor) else None
+    session = None if floor else stack.enter_context(_shaped(backend, num_envs, **config))
+    venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
+    if isinstance(floor, TcpFloor):
+        env = _round_trip_per_step(venv, stack.enter_context(floor.round_trips(num_envs)))
+    elif floor is not None:
+        env = _round_trip_per_step(venv, None)
+    else:
+        env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
+    model = A2C("MlpPolicy", env, seed=0, device="cpu")
+    if bind and isinstance(env, tamrm.sb3.ShapedVecEnv):
+        env.bind_model(model)
+    stack.callback(env.close)
+    return model, env
+
+
+def _fingerprint(model: Any) -> float:
+    """The sum of the learned weights (equal sums: the runs learned the same)."""
+    return float(sum(p.detach().double().sum() for p in model.policy.parameters()))
+
+
 def a2c_run(
     backend: Backend | None, num_envs: int, timesteps: int, zero_weights: bool = False
 ) -> tuple[float, float]:
@@ -240,35 +279,59 @@ def a2c_run(
     difference is then the cost of shaping alone; with the default weights it also holds
     the work of learning something else (other episode lengths, other resets)."""
     import torch
-    from stable_baselines3 import A2C
-    from stable_baselines3.common.env_util import make_vec_env
-
-    import tamrm.sb3
 
     torch.set_num_threads(1)
-    config = {"alpha": 0.0, "beta": 0.0} if zero_weights else {}
-    bind = not isinstance(backend, NoValues)
-    if isinstance(backend, NoValues):
-        backend = backend.engine
-    floor = backend if isinstance(backend, TcpFloor | WrapperFloor) else None
     with contextlib.ExitStack() as stack:
-        session = None if floor else stack.enter_context(_shaped(backend, num_envs, **config))
-        venv = make_vec_env("CartPole-v1", n_envs=num_envs, seed=0)
-        if isinstance(floor, TcpFloor):
-            env = _round_trip_per_step(venv, stack.enter_context(floor.round_trips(num_envs)))
-        elif floor is not None:
-            env = _round_trip_per_step(venv, None)
-        else:
-            env = venv if session is None else tamrm.sb3.ShapedVecEnv(venv, session)
-        model = A2C("MlpPolicy", env, seed=0, device="cpu")
-        if bind and isinstance(env, tamrm.sb3.ShapedVecEnv):
-            env.bind_model(model)
+        model, _ = _a2c_model(stack, backend, num_envs, zero_weights)
         start = time.perf_counter()
         model.learn(total_timesteps=timesteps)
         elapsed = time.perf_counter() - start
-        env.close()
-        fingerprint = float(sum(p.detach().double().sum() for p in model.policy.parameters()))
+        fingerprint = _fingerprint(model)
     return elapsed, fingerprint
+
+
+def a2c_turns(
+    backends: dict[str, Backend | None],
+    num_envs: int,
+    timesteps: int,
+    zero_weights: bool,
+    turn: int,
+    rotation: int,
+) -> dict[str, tuple[float, float]]:
+    """Per variant of ``backends``: seconds and fingerprint of an A2C ``learn(timesteps)``
+    run in turns, all in this process: every variant's model learns ``turn`` timesteps
+    in its turn (``learn(turn, reset_num_timesteps=False)``), the order of the turns
+    rotated by one each time (starting at ``rotation``). The machine's speed drifts by
+    tens of percent over seconds here; turns of a few hundred milliseconds put every
+    variant under the same drift, which interleaving whole runs does not. Each model keeps
+    its own random state (torch, numpy, random) across turns, so it learns exactly what it
+    learns alone (with alpha = beta = 0: the plain run's weights)."""
+    import torch
+
+    torch.set_num_threads(1)
+    names = list(backends)
+    with contextlib.ExitStack() as stack:
+        models: dict[str, Any] = {}
+        rng: dict[str, tuple[Any, Any, Any]] = {}
+        for name in names:
+            # A2C(seed=0) seeds every generator: take its state right after, as learn()
+            # would find it.
+            models[name], _ = _a2c_model(stack, backends[name], num_envs, zero_weights)
+            rng[name] = (torch.get_rng_state(), np.random.get_state(), random.getstate())
+        elapsed = dict.fromkeys(names, 0.0)
+        for i in range(-(-timesteps // turn)):
+            order = names[(rotation + i) % len(names) :] + names[: (rotation + i) % len(names)]
+            for name in order:
+                torch_state, np_state, py_state = rng[name]
+                torch.set_rng_state(torch_state)
+                np.random.set_state(np_state)
+                random.setstate(py_state)
+                steps = min(turn, timesteps - i * turn)
+                start = time.perf_counter()
+                models[name].learn(steps, reset_num_timesteps=False)
+                elapsed[name] += time.perf_counter() - start
+                rng[name] = (torch.get_rng_state(), np.random.get_state(), random.getstate())
+        return {name: (elapsed[name], _fingerprint(models[name])) for name in names}
 
 
 def interleaved(
@@ -296,6 +359,13 @@ def main() -> None:
     parser.add_argument("--a2c-envs", type=int, default=8)
     parser.add_argument("--a2c-timesteps", type=int, default=20000)
     parser.add_argument("--no-sb3", action="store_true", help="skip the A2C runs")
+    parser.add_argument(
+        "--a2c-turn",
+        type=int,
+        default=400,
+        help="A2C runs learn in turns of this many timesteps, every variant in one process "
+        "(a2c_turns); 0: each learn() whole, in its own run, as older tables did",
+    )
     parser.add_argument(
         "--a2c-weights",
         default="zero,default",
@@ -381,9 +451,23 @@ def main() -> None:
                     prints.setdefault(v, set()).add(fingerprint)
                     return secs
 
-                samples = interleaved(variants, ns.repeats, run, f"a2c {form}")
-                label = f"SB3 A2C learn({ts}), {k} envs, " + (
-                    "alpha = beta = 0 (same learning)" if zero else "default weights"
+                if ns.a2c_turn > 0:
+                    samples = {name: [] for name in variants}
+                    for r in range(-1, ns.repeats):  # round -1: the warm-up
+                        timed = a2c_turns(
+                            {v: backends[v] for v in variants}, k, ts, zero, ns.a2c_turn, r
+                        )
+                        for name, (secs, fingerprint) in timed.items():
+                            prints.setdefault(name, set()).add(fingerprint)
+                            if r >= 0:
+                                samples[name].append(secs)
+                        print(f"a2c {form} round {r + 1}: {timed}", file=sys.stderr)
+                else:
+                    samples = interleaved(variants, ns.repeats, run, f"a2c {form}")
+                label = (
+                    f"SB3 A2C learn({ts}), {k} envs, "
+                    + (f"in turns of {ns.a2c_turn}, " if ns.a2c_turn > 0 else "")
+                    + ("alpha = beta = 0 (same learning)" if zero else "default weights")
                 )
                 if zero and any(p != prints["plain"] for p in prints.values()):
                     # The premise of the form: say so loudly if it does not hold.

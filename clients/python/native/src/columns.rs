@@ -165,6 +165,20 @@ pub(crate) struct StepArgs<'a, 'py> {
     pub values: Option<(&'a Bound<'py, PyAny>, &'a Bound<'py, PyAny>)>,
     pub q_values: Option<(&'a Bound<'py, PyAny>, &'a Bound<'py, PyAny>)>,
     pub scores: Option<(&'a Bound<'py, PyAny>, &'a Bound<'py, PyAny>)>,
+    /// `(terminated, truncated)` already as flags (instead of `terminated`/`truncated`).
+    pub ends: Option<(&'a [bool], &'a [bool])>,
+    /// V or Q of s and s' from the native critic (instead of `values`/`q_values`).
+    pub critic: Option<CriticValues<'a>>,
+}
+
+/// The native critic's outputs for one step: V(s) and V(s') (`B` each), or with `q`
+/// Q(s, ·) and Q(s', ·) (`B × outputs` each, row-major).
+#[derive(Clone, Copy)]
+pub(crate) struct CriticValues<'a> {
+    pub before: &'a [f32],
+    pub after: &'a [f32],
+    pub q: bool,
+    pub outputs: usize,
 }
 
 impl Prepared {
@@ -218,8 +232,15 @@ impl Prepared {
             to_f32(&self.f64s, &mut self.action_vectors);
         }
 
+        if let Some((terminated, truncated)) = args.ends {
+            self.terminated.extend_from_slice(terminated);
+            self.truncated.extend_from_slice(truncated);
+        }
         if let Some((v, nv)) = args.values {
             self.pair(py, ("values", v), ("next_values", nv), Column::Values)?;
+        }
+        if let Some(c) = args.critic {
+            self.critic_pair(py, c)?;
         }
         if let Some((q, nq)) = args.q_values {
             self.pair(py, ("q_values", q), ("next_q_values", nq), Column::Q)?;
@@ -294,6 +315,41 @@ impl Prepared {
         };
         to_f32(&self.f64s, x);
         to_f32(&self.f64s2, nx);
+        Ok(())
+    }
+
+    /// The native critic's values, checked as `pair` checks the arrays (a float32 is
+    /// always in range: only finiteness can fail).
+    fn critic_pair(&mut self, py: Python<'_>, c: CriticValues<'_>) -> PyResult<()> {
+        let (names, column) = if c.q {
+            (["q_values", "next_q_values"], Column::Q)
+        } else {
+            (["values", "next_values"], Column::Values)
+        };
+        let rows = c.before.len() / c.outputs.max(1);
+        let shape = if c.q {
+            vec![rows, c.outputs]
+        } else {
+            vec![rows]
+        };
+        for (name, xs) in names.into_iter().zip([c.before, c.after]) {
+            if let Some(i) = xs.iter().position(|x| !x.is_finite()) {
+                let index = index_of(i, &shape);
+                return Err(invalid_number(
+                    py,
+                    name,
+                    &index,
+                    f64::from(xs[i]),
+                    NOT_FINITE,
+                ));
+            }
+        }
+        let (x, nx) = match column {
+            Column::Values => (&mut self.values, &mut self.next_values),
+            Column::Q => (&mut self.q_values, &mut self.next_q_values),
+        };
+        x.extend_from_slice(c.before);
+        nx.extend_from_slice(c.after);
         Ok(())
     }
 

@@ -17,6 +17,7 @@ mod options;
 mod remote;
 mod stream;
 mod tracker;
+mod vecstep;
 
 use std::sync::Mutex;
 
@@ -82,5 +83,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<options::ChannelOptions>()?;
     m.add_class::<stream::NativeStream>()?;
     m.add_class::<mlp::Mlp>()?;
+    m.add_class::<vecstep::VecStep>()?;
     Ok(())
 }

@@ -124,7 +124,7 @@ impl Mlp {
 
     /// The number of inputs of the first layer.
     #[getter]
-    fn inputs(&self) -> usize {
+    pub(crate) fn inputs(&self) -> usize {
         self.layers[0].inputs
     }
 

@@ -3,17 +3,15 @@
 
 use std::sync::Mutex;
 
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyArray2};
 use prost::Message;
 use pyo3::exceptions::PyValueError;
-use pyo3::intern;
 use pyo3::prelude::*;
-use pyo3::types::{PyBytes, PyDict, PyList};
+use pyo3::types::PyBytes;
 use tamrm::proto;
 use tonic::Code;
 
 use crate::columns::{Answer, Prepared, Shape, StepArgs};
-use crate::mlp::Mlp;
 use crate::tracker::Tracker;
 use crate::{engine, remote, status};
 
@@ -68,11 +66,26 @@ pub(crate) struct Inner {
 }
 
 impl Inner {
+    /// The environments of the stream.
+    pub(crate) fn num_envs(&self) -> usize {
+        self.shape.num_envs
+    }
+
+    /// Whether the session is closed.
+    pub(crate) fn closed(&self) -> bool {
+        self.closed
+    }
+
+    /// The environment rewards of the last batch, as sent.
+    pub(crate) fn sent_rewards(&self) -> &[f64] {
+        &self.prepared.rewards
+    }
+
     /// Checks `args`, shapes them on the transport and records the answer (the one step
     /// path of `step` and `step_vec`). A closed session, a bad argument or a failed
     /// round trip is an error; after one that is not a rejected batch the session is
     /// closed.
-    fn run(&mut self, py: Python<'_>, args: &StepArgs<'_, '_>) -> PyResult<Answer> {
+    pub(crate) fn run(&mut self, py: Python<'_>, args: &StepArgs<'_, '_>) -> PyResult<Answer> {
         if self.closed {
             return Err(closed_error());
         }
@@ -192,58 +205,9 @@ impl NativeStream {
         }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+    pub(crate) fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
         self.inner.lock().unwrap_or_else(|e| e.into_inner())
     }
-}
-
-/// Rows of the `sums` array of `step_vec`: R_meta, r(t), F, knn_active, R.
-const SUMS: usize = 5;
-
-/// `critic` on `before` and `after` (`n` rows each) as one batch: V(s) and V(s') as two
-/// `(n,)` arrays, or with `q` Q(s, ·) and Q(s', ·) as two `(n, outputs)` arrays.
-fn critic_values<'py>(
-    py: Python<'py>,
-    critic: &Mlp,
-    before: &Bound<'py, PyArray2<f32>>,
-    after: &Bound<'py, PyArray2<f32>>,
-    n: usize,
-    q: bool,
-) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
-    let mut x = Vec::new();
-    for obs in [before, after] {
-        // SAFETY: the GIL is held and no Python code runs while the slice lives.
-        let Ok(rows) = (unsafe { obs.as_slice() }) else {
-            return Err(PyValueError::new_err(
-                "step_vec: observations must be C-contiguous",
-            ));
-        };
-        if obs.shape()[0] != n {
-            return Err(PyValueError::new_err(format!(
-                "step_vec: {} observations for {n} envs",
-                obs.shape()[0]
-            )));
-        }
-        x.extend_from_slice(rows);
-    }
-    let out = critic.eval(py, &x, 2 * n)?;
-    let k = critic.outputs();
-    if !q && k != 1 {
-        return Err(PyValueError::new_err(format!(
-            "step_vec: a state-value critic has 1 output, this one {k}"
-        )));
-    }
-    let (first, second) = out.split_at(n * k);
-    let pair = |half: &[f32]| -> PyResult<Bound<'py, PyAny>> {
-        Ok(if q {
-            let a = numpy::ndarray::Array2::from_shape_vec((n, k), half.to_vec())
-                .map_err(|e| PyValueError::new_err(format!("step_vec: {e}")))?;
-            PyArray2::from_owned_array(py, a).into_any()
-        } else {
-            PyArray1::from_slice(py, half).into_any()
-        })
-    };
-    Ok((pair(first)?, pair(second)?))
 }
 
 fn closed_error() -> PyErr {
@@ -288,106 +252,12 @@ impl NativeStream {
             values: values.as_ref().zip(next_values.as_ref()),
             q_values: q_values.as_ref().zip(next_q_values.as_ref()),
             scores: score_rows.as_ref().zip(score_values.as_ref()),
+            ends: None,
+            critic: None,
         };
         let answer = guard.run(py, &args)?;
         let pool_version = guard.pool_version;
         Ok(answer_arrays(py, answer, pool_version))
-    }
-
-    /// One vector step of `tamrm.sb3.ShapedVecEnv` in one call: the critic `critic` (if
-    /// any) on `obs_before` and `obs_after` in one batch (V(s) and V(s'), or Q with
-    /// `q_values`), the step as `step` shapes it (with `terminated`/`truncated` when an
-    /// environment ended), R_meta, r(t), F, knn_active and R added into the rows of
-    /// `sums` (`(5, num_envs)`, per env), the six info keys written into the dicts of
-    /// `infos`, and R_meta returned as float32. Every check and error is `step`'s.
-    #[pyo3(signature = (
-        actions, rewards, critic, q_values, obs_before, obs_after, infos, sums,
-        terminated=None, truncated=None
-    ))]
-    #[allow(clippy::too_many_arguments)]
-    fn step_vec<'py>(
-        &self,
-        py: Python<'py>,
-        actions: Bound<'py, PyAny>,
-        rewards: Bound<'py, PyAny>,
-        critic: Option<Bound<'py, Mlp>>,
-        q_values: bool,
-        obs_before: Option<Bound<'py, PyArray2<f32>>>,
-        obs_after: Option<Bound<'py, PyArray2<f32>>>,
-        infos: Bound<'py, PyList>,
-        sums: Bound<'py, PyArray2<f64>>,
-        terminated: Option<Bound<'py, PyAny>>,
-        truncated: Option<Bound<'py, PyAny>>,
-    ) -> PyResult<Bound<'py, PyArray1<f32>>> {
-        let mut guard = self.lock();
-        let n = guard.shape.num_envs;
-        if infos.len() != n || sums.shape() != [SUMS, n] {
-            return Err(PyValueError::new_err(format!(
-                "step_vec: {} infos and sums of shape {:?} for {n} envs",
-                infos.len(),
-                sums.shape()
-            )));
-        }
-        let values = match (&critic, &obs_before, &obs_after) {
-            (Some(mlp), Some(before), Some(after)) => {
-                Some(critic_values(py, mlp.get(), before, after, n, q_values)?)
-            }
-            (None, None, None) => None,
-            _ => {
-                return Err(PyValueError::new_err(
-                    "step_vec: give the critic with both observation batches, or none",
-                ))
-            }
-        };
-        let (v, q) = match &values {
-            Some((a, b)) if q_values => (None, Some((a, b))),
-            Some((a, b)) => (Some((a, b)), None),
-            None => (None, None),
-        };
-        let args = StepArgs {
-            env_ids: None,
-            actions: &actions,
-            rewards: &rewards,
-            terminated: terminated.as_ref(),
-            truncated: truncated.as_ref(),
-            values: v,
-            q_values: q,
-            scores: None,
-        };
-        let answer = guard.run(py, &args)?;
-        if answer.rewards.len() != n {
-            return Err(PyValueError::new_err(format!(
-                "step_vec: {} rewards for {n} envs",
-                answer.rewards.len()
-            )));
-        }
-        let env_rewards = &guard.prepared.rewards;
-        // SAFETY: the GIL is held and no Python code runs while the slice lives.
-        let Ok(acc) = (unsafe { sums.as_slice_mut() }) else {
-            return Err(PyValueError::new_err("step_vec: sums must be C-contiguous"));
-        };
-        let active = |i: usize| if answer.knn_active[i] { 1.0 } else { 0.0 };
-        for i in 0..n {
-            acc[i] += answer.rewards[i];
-            acc[n + i] += answer.knn_rewards[i];
-            acc[2 * n + i] += answer.potentials[i];
-            acc[3 * n + i] += active(i);
-            acc[4 * n + i] += env_rewards[i];
-        }
-        let pool_version = answer.pool_version;
-        for (i, info) in infos.iter().enumerate() {
-            let info = info.cast::<PyDict>()?;
-            info.set_item(intern!(py, "original_reward"), env_rewards[i])?;
-            info.set_item(intern!(py, "knn_reward"), answer.knn_rewards[i])?;
-            info.set_item(intern!(py, "potential"), answer.potentials[i])?;
-            info.set_item(intern!(py, "shaping_step"), answer.steps[i])?;
-            info.set_item(intern!(py, "knn_active"), answer.knn_active[i])?;
-            info.set_item(intern!(py, "pool_version"), pool_version)?;
-        }
-        Ok(PyArray1::from_iter(
-            py,
-            answer.rewards.iter().map(|&r| r as f32),
-        ))
     }
 
     /// The task's pool version after the last answered batch (or at open).

@@ -35,19 +35,6 @@ class NativeStream:
         score_rows: npt.NDArray[np.int64] | None,
         score_values: npt.NDArray[np.float64] | None,
     ) -> _Answer: ...
-    def step_vec(
-        self,
-        actions: npt.NDArray[np.generic],
-        rewards: npt.NDArray[np.floating],
-        critic: Mlp | None,
-        q_values: bool,
-        obs_before: npt.NDArray[np.float32] | None,
-        obs_after: npt.NDArray[np.float32] | None,
-        infos: list[dict[str, object]],
-        sums: npt.NDArray[np.float64],
-        terminated: npt.NDArray[np.bool_] | None = None,
-        truncated: npt.NDArray[np.bool_] | None = None,
-    ) -> npt.NDArray[np.float32]: ...
     @property
     def pool_version(self) -> int: ...
     def abandon(self, envs: list[int]) -> None: ...
@@ -62,6 +49,27 @@ class Mlp:
     @property
     def inputs(self) -> int: ...
     def __call__(self, obs: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]: ...
+
+class VecStep:
+    def __init__(
+        self,
+        stream: NativeStream,
+        value_fn_type: type,
+        action_dim: int,
+        alpha: float,
+        beta: float,
+    ) -> None: ...
+    @property
+    def steps(self) -> int: ...
+    def step(
+        self,
+        env: object,
+        actions: object,
+        obs: object,
+        rewards: object,
+        dones: object,
+        infos: object,
+    ) -> npt.NDArray[np.float32] | None: ...
 
 class Engine:
     def __init__(self, data_dir: str | Path | None = None) -> None: ...

@@ -28,7 +28,7 @@ from tamrm._batch import (
     checked_scores,
 )
 from tamrm._closing import Closing
-from tamrm._errors import SessionClosed, from_native
+from tamrm._errors import SessionClosed, TamrmError, from_native
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._types import StepResult, Task, TaskConfig
 
@@ -283,48 +283,21 @@ class Session(Closing):
         try:
             return method(*args)
         except _native.StatusError as exc:
-            err = from_native(exc)
-            if self._native.closed:
-                self._error = err
-            raise err from None
+            raise self._failed(exc) from None
         except KeyboardInterrupt:
-            self._error = SessionClosed(f"the session on task {self.task_id!r} was interrupted")
+            self._interrupted()
             raise
 
-    def _step_vec(
-        self,
-        actions: npt.NDArray[Any],
-        rewards: npt.NDArray[np.floating[Any]],
-        critic: _native.Mlp | None,
-        q_values: bool,
-        obs_before: npt.NDArray[np.float32] | None,
-        obs_after: npt.NDArray[np.float32] | None,
-        infos: list[dict[str, Any]],
-        sums: npt.NDArray[np.float64],
-        terminated: npt.NDArray[np.bool_] | None = None,
-        truncated: npt.NDArray[np.bool_] | None = None,
-    ) -> npt.NDArray[np.float32]:
-        """One full vector step in one native call (``tamrm.sb3.ShapedVecEnv``'s fast path).
+    def _failed(self, exc: _native.StatusError) -> TamrmError:
+        """The error to raise for a failed native step call (kept if it closed the session)."""
+        err = from_native(exc)
+        if self._native.closed:
+            self._error = err
+        return err
 
-        Every env sends one entry (ends as in :meth:`step`); ``critic`` (a native MLP) gives
-        the values of ``obs_before`` and ``obs_after``; the answer is added into
-        ``sums`` and written into ``infos``; returns R_meta as float32. Arguments are
-        the canonical arrays (the caller checks dtypes and shapes); errors as :meth:`step`.
-        """
-        self._check_open()
-        return self._call(
-            self._native.step_vec,
-            actions,
-            rewards,
-            critic,
-            q_values,
-            obs_before,
-            obs_after,
-            infos,
-            sums,
-            terminated,
-            truncated,
-        )
+    def _interrupted(self) -> None:
+        """Record that a step was interrupted (Ctrl-C): the stream is gone."""
+        self._error = SessionClosed(f"the session on task {self.task_id!r} was interrupted")
 
     def abandon(self, env_ids: npt.ArrayLike) -> None:
         """Drop the current episodes of ``env_ids`` without offering them to the pool.

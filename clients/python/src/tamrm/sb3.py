@@ -223,11 +223,13 @@ class ModelValueFn:
     def version(self) -> tuple[Any, ...]:
         """Changes whenever the values may have changed.
 
-        It is made of the policy's identity, its training mode and the ids and in-place
-        version counters of its parameters and buffers: every optimizer step (and
-        ``set_parameters`` / ``load_state_dict``) bumps them. A change made through a
-        tensor's ``.data`` is not seen, nor a submodule replaced inside the same policy
-        object (the list of tensors is taken once per policy object).
+        It is made of the policy's identity, its training mode and the ids, in-place
+        version counters and storage pointers of its parameters and buffers: every
+        optimizer step (and ``set_parameters`` / ``load_state_dict``) bumps a counter, and
+        giving a tensor new storage (``p.data = ...``) moves its pointer. Not seen: an
+        in-place change through the ``.data`` alias (``p.data.add_(...)``, whose counter
+        is not ``p``'s) and a submodule replaced inside the same policy object (the list
+        of tensors is taken once per policy object).
         """
         policy = self.model.policy
         cached = self._tensors
@@ -237,7 +239,8 @@ class ModelValueFn:
             tensors = tuple(itertools.chain(policy.parameters(), policy.buffers()))
             cached = self._tensors = (policy, tensors, tuple(id(t) for t in tensors))
         _, tensors, ids = cached
-        return (id(policy), policy.training, ids, tuple([t._version for t in tensors]))
+        state = tuple([(t._version, t.data_ptr()) for t in tensors])
+        return (id(policy), policy.training, ids, state)
 
 
 def model_value_fn(model: Any, *, fast: bool = True) -> ModelValueFn:
@@ -329,12 +332,6 @@ def _end_flags(
     return dones & ~truncated, truncated
 
 
-def _flat32(obs: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
-    """A batch of observations as the native critic's rows: C-ordered float32 ``(B, -1)``."""
-    x = np.asarray(obs, dtype=np.float32)
-    return np.ascontiguousarray(x.reshape(x.shape[0], -1))
-
-
 # Rows of ShapedVecEnv._acc: the sums of R_meta, r(t), F, knn_active (0/1) and R.
 _SUMS = 5
 
@@ -422,14 +419,16 @@ class ShapedVecEnv(VecEnvWrapper):
         self._ended = np.zeros(_SUMS, dtype=np.float64)
         self._taken = np.zeros((_SUMS, n), dtype=np.float64)
         self._env_steps = 0  # shaped since the last take_stats
-        # The fast path (_fast_step): the action dtypes it takes, the last observations
-        # as the critic's float32 rows; tests turn it off to compare with the general path.
-        self._action_dtypes = (
-            (np.dtype(np.int64),)
-            if config.discrete
-            else (np.dtype(np.float32), np.dtype(np.float64))
+        # The fast path: the whole step in one native call (tamrm._native.VecStep, which
+        # declines the steps it does not handle); tests turn it off to compare with the
+        # general path.
+        self._vec_step = _native.VecStep(
+            session._native,
+            ModelValueFn,
+            0 if config.discrete else config.action_dim,
+            config.alpha,
+            config.beta,
         )
-        self._flat_obs: npt.NDArray[np.float32] | None = None
         self._fast_path = True
 
     def env_is_wrapped(self, wrapper_class: type[Any], indices: Any = None) -> list[bool]:
@@ -556,7 +555,6 @@ class ShapedVecEnv(VecEnvWrapper):
         self._acc[:] = 0.0
         self._taken[:] = 0.0
         self._values = None
-        self._flat_obs = None
         in_progress = self.session.episodes_in_progress
         if in_progress.any():
             self.session.abandon(np.flatnonzero(in_progress))
@@ -573,14 +571,20 @@ class ShapedVecEnv(VecEnvWrapper):
     ) -> tuple[VecEnvObs, npt.NDArray[np.float32], npt.NDArray[np.bool_], list[dict[str, Any]]]:
         """Wait for the step, shape its rewards in one round trip and return them."""
         raw_obs, rewards, dones, infos = self.venv.step_wait()
-        dones = np.asarray(dones, dtype=np.bool_)
-        any_done = bool(dones.any())
-        if self._fast_path and (not any_done or self.score_key is None):
-            shaped = self._fast_step(raw_obs, rewards, infos, dones if any_done else None)
+        if self._fast_path:
+            session = self.session
+            try:
+                shaped = self._vec_step.step(self, self._actions, raw_obs, rewards, dones, infos)
+            except _native.StatusError as exc:
+                raise session._failed(exc) from None
+            except KeyboardInterrupt:
+                session._interrupted()
+                raise
             if shaped is not None:
                 return raw_obs, shaped, dones, infos
+        dones = np.asarray(dones, dtype=np.bool_)
+        any_done = bool(dones.any())
         obs = _obs_batch(raw_obs)
-        self._flat_obs = None
         done_rows: list[int] = np.flatnonzero(dones).tolist() if any_done else []
         # None: no env ended (all false), one array fewer to check and send.
         terminated = truncated = None
@@ -636,88 +640,6 @@ class ShapedVecEnv(VecEnvWrapper):
             info["pool_version"] = pool_version
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
-
-    def _fast_step(
-        self,
-        raw_obs: VecEnvObs,
-        rewards: npt.NDArray[Any],
-        infos: list[dict[str, Any]],
-        dones: npt.NDArray[np.bool_] | None,
-    ) -> npt.NDArray[np.float32] | None:
-        """A step in one native call; ``None``: take the general path.
-
-        It applies when the actions are the canonical array and the values, if any, come
-        from a native critic (:class:`ModelValueFn` with ``native``) on array
-        observations, and, on a step where an env ended (``dones``), no ``score_key`` is
-        set. V(s) is evaluated again with V(s') in one batch rather than taken from the
-        previous step: the same values (a row's value depends on that row and the weights
-        only), without the version check; a truncated env's V(s') is that of its
-        ``terminal_observation``, as on the general path. The result is the general
-        path's, bit for bit (tested on whole training runs).
-        """
-        actions = self._actions
-        if not (
-            type(actions) is np.ndarray
-            and actions.dtype in self._action_dtypes
-            and actions.shape == self._action_shape
-        ):
-            return None
-        critic = before = after = None
-        q = False
-        value_fn = self.value_fn
-        if value_fn is not None:
-            if type(value_fn) is not ModelValueFn or not value_fn.fast:
-                return None
-            policy = value_fn.model.policy
-            native, q = value_fn._critic_of(policy)
-            if native is None or type(raw_obs) is not np.ndarray:
-                return None
-            before = self._flat_obs
-            if before is None:
-                if type(self._obs) is not np.ndarray:
-                    return None
-                before = _flat32(self._obs)
-            after = _flat32(raw_obs)
-            critic = native._mlp
-        if type(rewards) is not np.ndarray:
-            rewards = np.asarray(rewards, dtype=np.float64)
-        terminated = truncated = None
-        done_rows: list[int] = []
-        critic_after = after
-        if dones is not None:
-            done_rows = np.flatnonzero(dones).tolist()
-            terminated, truncated = _end_flags(dones, done_rows, infos)
-            finals = [
-                row
-                for row in done_rows
-                if truncated[row] and infos[row].get("terminal_observation") is not None
-            ]
-            if finals and after is not None:
-                critic_after = after.copy()
-                for row in finals:
-                    last = np.asarray(infos[row]["terminal_observation"], dtype=np.float32)
-                    if last.size != after.shape[1]:
-                        return None
-                    critic_after[row] = last.reshape(-1)
-        shaped = self.session._step_vec(
-            actions,
-            rewards,
-            critic,
-            q,
-            before,
-            critic_after,
-            infos,
-            self._acc,
-            terminated,
-            truncated,
-        )
-        self._env_steps += self.num_envs
-        for i in done_rows:
-            self._end_episode(i, infos[i], infos[i]["shaping_step"] + 1)
-        self._obs = _obs_batch(raw_obs)
-        self._flat_obs = after
-        self._values = None  # the general path's cache is not kept here
-        return shaped
 
     def _end_episode(self, i: int, info: dict[str, Any], length: int) -> None:
         """Put env ``i``'s finished episode into ``info["shaped_episode"]`` and the stats."""
