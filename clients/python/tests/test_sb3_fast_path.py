@@ -201,3 +201,39 @@ def test_fast_path_errors_are_the_sessions(client: tamrm.Client, task_id: str) -
         env.close()
     assert errors[0] == errors[1]
     assert "values[0] = inf is not finite" in errors[0]
+
+
+def test_fast_path_over_subprocesses_equals_the_general_path(
+    client: tamrm.Client, task_id: str
+) -> None:
+    """SubprocVecEnv hands back its infos as a tuple and its rewards as float64: the fast
+    path takes those steps too, with the general path's results (over a DummyVecEnv)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    runs = []
+    for fast, vec_env_cls in ((True, SubprocVecEnv), (False, DummyVecEnv)):
+        tid = f"{task_id}-{'fast' if fast else 'slow'}"
+        client.create_task(tid, num_actions=2, pool_capacity=3, k=2, min_pool_size=1)
+        venv = make_vec_env(
+            "CartPole-v1",
+            n_envs=2,
+            seed=3,
+            env_kwargs={"max_episode_steps": 20},
+            vec_env_cls=vec_env_cls,
+        )
+        with client.session(tid, 2) as session:
+            env = tamrm.sb3.ShapedVecEnv(venv, session)
+            env._fast_path = fast
+            model = A2C("MlpPolicy", env, n_steps=5, seed=1)
+            env.bind_model(model)
+            record = Record(env)
+            model.learn(300, callback=record)
+            runs.append((record, env._vec_step.steps, model))
+            env.close()
+    (fast_record, fast_steps, fast_model), (slow_record, slow_steps, slow_model) = runs
+    assert fast_record.steps == slow_record.steps
+    assert fast_record.stats == slow_record.stats
+    assert fast_steps == len(fast_record.steps) >= 150 and slow_steps == 0
+    assert any("shaped_episode" in info for _, info in fast_record.steps)
+    for p, q in zip(fast_model.policy.parameters(), slow_model.policy.parameters(), strict=True):
+        assert torch.equal(p, q)

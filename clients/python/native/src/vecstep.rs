@@ -138,6 +138,24 @@ fn float_rows(obj: &Bound<'_, PyAny>, rows: Option<usize>, out: &mut [f32]) -> O
     }
 }
 
+/// The `n` dicts of `infos`, a list or a tuple of dicts; `None` for anything else.
+fn info_dicts<'py>(infos: &Bound<'py, PyAny>, n: usize) -> Option<Vec<Bound<'py, PyDict>>> {
+    let items: Vec<Bound<'py, PyAny>> = if let Ok(list) = infos.cast::<PyList>() {
+        list.iter().collect()
+    } else if let Ok(tuple) = infos.cast::<PyTuple>() {
+        tuple.iter().collect()
+    } else {
+        return None;
+    };
+    if items.len() != n {
+        return None;
+    }
+    items
+        .into_iter()
+        .map(|i| i.cast_into::<PyDict>().ok())
+        .collect()
+}
+
 fn lock(state: &Mutex<State>) -> MutexGuard<'_, State> {
     state.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -289,9 +307,6 @@ impl VecStep {
         let mut state = lock(&self.state);
 
         // The step's arrays, as SB3's VecEnvs give them.
-        let Ok(infos) = infos.cast::<PyList>() else {
-            return Ok(None);
-        };
         let Ok(done_array) = dones.cast::<PyArray1<bool>>() else {
             return Ok(None);
         };
@@ -303,8 +318,7 @@ impl VecStep {
         };
         let rewards_ok = is_ndarray(py, rewards)
             && (rewards.cast::<PyArray1<f32>>().is_ok() || rewards.cast::<PyArray1<f64>>().is_ok());
-        if infos.len() != n
-            || done.len() != n
+        if done.len() != n
             || !rewards_ok
             || !self.canonical_actions(py, actions, n)
             || obs.is_instance_of::<PyTuple>()
@@ -315,13 +329,10 @@ impl VecStep {
         if any_done && !env.getattr(intern!(py, "score_key"))?.is_none() {
             return Ok(None);
         }
-        let mut info_dicts = Vec::with_capacity(n);
-        for info in infos.iter() {
-            let Ok(info) = info.cast_into::<PyDict>() else {
-                return Ok(None);
-            };
-            info_dicts.push(info);
-        }
+        // A list of dicts (DummyVecEnv), or a tuple of them (SubprocVecEnv).
+        let Some(info_dicts) = info_dicts(infos, n) else {
+            return Ok(None);
+        };
         // SB3's dones split by TimeLimit.truncated (as `_end_flags`).
         let (mut terminated, mut truncated) = (Vec::new(), Vec::new());
         if any_done {
