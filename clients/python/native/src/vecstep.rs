@@ -485,8 +485,10 @@ impl VecStep {
             return Ok(None);
         }
         let prev = env.getattr(intern!(py, "_obs"))?;
-        let same = state.rows_of.as_ref().is_some_and(|o| o.bind(py).is(&prev));
         let mut x = std::mem::take(&mut state.x);
+        // (An error below leaves `state.x` empty: then the rows are read again.)
+        let same =
+            x.len() == 2 * n * d && state.rows_of.as_ref().is_some_and(|o| o.bind(py).is(&prev));
         x.resize(2 * n * d, 0.0);
         let (before, after) = x.split_at_mut(n * d);
         let mut ok = same || float_rows(&prev, Some(n), before).is_some();
