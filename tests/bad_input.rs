@@ -526,6 +526,25 @@ async fn malformed_step_batches_are_rejected_whole() {
     server.shutdown().await;
 }
 
+/// SPEC §8: a missing `Open` is INVALID_ARGUMENT, also when the stream is half-closed
+/// before any message (not a quiet OK: the client learns its stream never opened).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_ended_before_any_message_is_told_open_is_missing() {
+    let server = start_server(None, |_| {}).await;
+    let mut c = connect(server.addr()).await;
+    seeded_task(&mut c, "t", 3, 0).await;
+    let before = state(&mut c, "t").await;
+    let s = bounded("empty stream", Stream::raw(&mut c))
+        .await
+        .expect("raw stream");
+    let mut rx = s.close();
+    let got = bounded("empty stream", rx.message()).await;
+    expect_status("empty stream", got, Code::InvalidArgument, "open");
+    assert_eq!(state(&mut c, "t").await, before);
+    assert_serving(server.addr()).await;
+    server.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stream_protocol_errors() {
     let server = start_server(None, |s| s.limits.max_envs_per_stream = 4).await;
@@ -677,14 +696,8 @@ async fn stream_protocol_errors() {
         w.check(name, after.stats.pool_version).await;
     }
 
-    // A client that half-closes without sending anything: the stream just ends (no
-    // hang, no change).
+    // (A stream half-closed before any message: its own test above.)
     let before = state(&mut c, "t").await;
-    let s = Stream::raw(&mut c).await.unwrap();
-    let mut rx = s.close();
-    let end = bounded("empty stream", rx.message()).await;
-    assert!(!matches!(end, Ok(Some(_))), "empty stream answered {end:?}");
-    assert_eq!(state(&mut c, "t").await, before);
 
     // max_envs_per_stream itself is allowed.
     let (mut s, _) = open(&mut c, "t", 4).await.expect("num_envs == limit");

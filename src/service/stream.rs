@@ -130,6 +130,14 @@ async fn serve<A: Answers>(
             return Error::invalid("open", "the first message of a Shape stream must be open")
                 .into()
         }
+        // SPEC §8: a missing Open, also when the stream ends before any message.
+        Err(End::ClientDone) => {
+            return Error::invalid(
+                "open",
+                "the stream ended before its first message, which must be open",
+            )
+            .into()
+        }
         Err(end) => return end,
     };
     let opened = A::opened(task_proto(session.task()));
