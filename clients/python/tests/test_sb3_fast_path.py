@@ -173,6 +173,35 @@ def test_fast_path_follows_changed_weights_policies_and_resets(
     slow.close()
 
 
+def test_a_replaced_session_is_the_one_both_paths_step(client: tamrm.Client, task_id: str) -> None:
+    _, fast, slow = _twins(client, task_id, "model")
+    rng = np.random.default_rng(3)
+    for env in (fast, slow):
+        env.step(np.zeros(3, dtype=np.int64))
+    old = [fast.session, slow.session]
+    new = []
+    for env, name in ((fast, "fast"), (slow, "slow")):
+        tid = f"{task_id}-{name}-2"
+        client.create_task(tid, num_actions=2, pool_capacity=3, k=2, min_pool_size=1)
+        env.session = client.session(tid, 3)
+        new.append(env.session)
+    for _ in range(15):
+        actions = rng.integers(0, 2, size=3)
+        a, b = fast.step(actions), slow.step(actions)
+        assert a[1].tobytes() == b[1].tobytes()
+    # The new sessions were stepped, the fast one on the fast path.
+    assert all(s.episodes_in_progress.all() for s in new)
+    assert fast._vec_step.steps == 15
+    other = client.session(f"{task_id}-fast-2", 2)
+    with pytest.raises(ValueError, match="num_envs=2"):
+        fast.session = other
+    assert fast.session is new[0]
+    for s in (*old, other):
+        s.close()
+    fast.close()
+    slow.close()
+
+
 def test_fast_path_errors_are_the_sessions(client: tamrm.Client, task_id: str) -> None:
     _, fast, slow = _twins(client, task_id, "model")
     for env in (fast, slow):

@@ -398,8 +398,7 @@ class ShapedVecEnv(VecEnvWrapper):
         close_session: bool | None = None,
     ) -> None:
         super().__init__(venv)
-        check_session(session, venv.num_envs, venv.action_space, "the VecEnv")
-        self.session = session
+        self.session = session  # checked, with the fast path bound to it (the setter)
         self.close_session = close_session
         self.value_fn = value_fn
         self.score_key = score_key
@@ -419,9 +418,25 @@ class ShapedVecEnv(VecEnvWrapper):
         self._ended = np.zeros(_SUMS, dtype=np.float64)
         self._taken = np.zeros((_SUMS, n), dtype=np.float64)
         self._env_steps = 0  # shaped since the last take_stats
-        # The fast path: the whole step in one native call (tamrm._native.VecStep, which
-        # declines the steps it does not handle); tests turn it off to compare with the
-        # general path.
+        # Tests turn the fast path off to compare with the general path.
+        self._fast_path = True
+
+    @property
+    def session(self) -> Session:
+        """The session that shapes every step.
+
+        It can be replaced by another open session of ``num_envs`` environments; the
+        next step is then the new session's (its check raises ``ValueError`` as the
+        constructor's does).
+        """
+        return self._session
+
+    @session.setter
+    def session(self, session: Session) -> None:
+        check_session(session, self.venv.num_envs, self.venv.action_space, "the VecEnv")
+        config = session.config
+        # The fast path: the whole step in one native call on this session
+        # (tamrm._native.VecStep, which declines the steps it does not handle).
         self._vec_step = _native.VecStep(
             session._native,
             ModelValueFn,
@@ -429,7 +444,7 @@ class ShapedVecEnv(VecEnvWrapper):
             config.alpha,
             config.beta,
         )
-        self._fast_path = True
+        self._session = session
 
     def env_is_wrapped(self, wrapper_class: type[Any], indices: Any = None) -> list[bool]:
         """Whether the sub-environments are wrapped in ``wrapper_class`` (SB3's query).
