@@ -79,3 +79,29 @@ def test_overhead_benchmark_smoke(server_binary: str) -> None:
     # With alpha = beta = 0 every backend's run learns what the plain run learns.
     assert "(same learning)" in out and "default weights" in out
     assert "DIFFERED" not in out, out
+
+
+def test_round_trip_cpu_benchmark_smoke(server_binary: str) -> None:
+    out = _run(
+        [
+            str(CLIENT / "benchmarks" / "round_trip_cpu.py"),
+            "--rounds",
+            "1",
+            "--steps",
+            "30",
+            "--warmup",
+            "5",
+            "--gap-us",
+            "100",
+            "--server-args=--worker-threads=1",
+        ],
+        server_binary,
+    )
+    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    assert set(rows) >= {"tcp", "remote", "engine"}, out
+    # Every variant measured something; only the remote one has a server.
+    cells = {name: [c.strip() for c in row.split("|")[2:6]] for name, row in rows.items()}
+    for name in ("tcp", "remote", "engine"):
+        assert all(float(c) > 0 for c in cells[name][:3]), out
+    assert float(cells["remote"][3]) > 0 and cells["tcp"][3] == "—", out
+    assert "['--worker-threads', '1']" in out
