@@ -97,3 +97,28 @@ def _check_stats(
     assert stats.potential_term == pytest.approx(BETA * arr[:, 3].sum(), rel=1e-9, abs=1e-12)
     assert stats.knn_active == int(arr[:, 4].sum())
     assert stats.pool_version == pool_version
+
+
+def test_recording_refuses_mismatched_columns_and_changes_nothing(
+    client: tamrm.Client, task_id: str
+) -> None:
+    from tamrm import _native
+
+    client.create_task(task_id, **SHAPING)  # type: ignore[arg-type]
+    venv = DummyVecEnv([lambda: gym.make("CartPole-v1")] * 2)
+    with client.session(task_id, 2) as session:
+        env = tamrm.sb3.ShapedVecEnv(venv, session)
+        env.reset()
+        _, _, dones, infos = env.step(np.zeros(2, dtype=np.int64))
+        result = session.step(np.zeros(2, dtype=np.int64), np.ones(2))
+        acc, steps = env._acc.copy(), env._env_steps
+        rewards = np.ones(2)
+        with pytest.raises(ValueError, match="num_envs = 2"):
+            _native.record_step(env, infos, dones, np.ones(3), result, ALPHA, BETA)
+        with pytest.raises(TypeError, match="2 dicts"):
+            _native.record_step(env, infos[:1], dones, rewards, result, ALPHA, BETA)
+        assert env._acc.tobytes() == acc.tobytes() and env._env_steps == steps
+        _native.record_step(env, infos, dones, rewards, result, ALPHA, BETA)
+        assert env._env_steps == steps + 2
+        np.testing.assert_array_equal(env._acc[4], acc[4] + 1.0)
+        env.close()

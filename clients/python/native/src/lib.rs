@@ -84,5 +84,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<stream::NativeStream>()?;
     m.add_class::<mlp::Mlp>()?;
     m.add_class::<vecstep::VecStep>()?;
+    m.add_function(wrap_pyfunction!(vecstep::record_step, m)?)?;
     Ok(())
 }

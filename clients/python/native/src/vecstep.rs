@@ -8,7 +8,8 @@
 //! six info keys (and `shaped_episode` where an episode ended) and returns R_meta as
 //! float32. It reads and writes the wrapper's own attributes (`_obs`, `_acc`, `_taken`,
 //! `_ended`, `_env_steps`, `_values`), so the wrapper's general path (Python) can take
-//! over on any step and finds them as it left them.
+//! over on any step and finds them as it left them. What a shaped step records is one
+//! function, [`record`], which the general path calls too (`_native.record_step`).
 //!
 //! Whatever it does not handle it declines before changing anything (it returns `None`):
 //! an action, observation or reward that is not the canonical numpy array, a `value_fn`
@@ -402,36 +403,16 @@ impl VecStep {
         }
 
         // The wrapper's per-episode sums and the info keys.
-        let acc = env
-            .getattr(intern!(py, "_acc"))?
-            .cast_into::<PyArray2<f64>>()?;
-        let mut acc_rw = acc.try_readwrite()?;
-        let (Ok(acc), true) = (acc_rw.as_slice_mut(), acc.shape() == [SUMS, n]) else {
-            return Err(PyValueError::new_err(
-                "VecStep: the wrapper's _acc is not a C-ordered (5, num_envs) array",
-            ));
+        let shaped = Shaped {
+            r_meta: &answer.rewards,
+            knn_rewards: &answer.knn_rewards,
+            potentials: &answer.potentials,
+            knn_active: &answer.knn_active,
+            steps: &answer.steps,
+            env_rewards: guard.sent_rewards(),
+            pool_version: answer.pool_version,
         };
-        let env_rewards = guard.sent_rewards();
-        for i in 0..n {
-            acc[i] += answer.rewards[i];
-            acc[n + i] += answer.knn_rewards[i];
-            acc[2 * n + i] += answer.potentials[i];
-            acc[3 * n + i] += if answer.knn_active[i] { 1.0 } else { 0.0 };
-            acc[4 * n + i] += env_rewards[i];
-        }
-        let pool_version = answer.pool_version;
-        for (i, info) in info_dicts.iter().enumerate() {
-            info.set_item(intern!(py, "original_reward"), env_rewards[i])?;
-            info.set_item(intern!(py, "knn_reward"), answer.knn_rewards[i])?;
-            info.set_item(intern!(py, "potential"), answer.potentials[i])?;
-            info.set_item(intern!(py, "shaping_step"), answer.steps[i])?;
-            info.set_item(intern!(py, "knn_active"), answer.knn_active[i])?;
-            info.set_item(intern!(py, "pool_version"), pool_version)?;
-        }
-        if any_done {
-            self.end_episodes(py, env, &info_dicts, done, &answer.steps, acc)?;
-        }
-        drop(acc_rw);
+        record(py, env, &info_dicts, done, &shaped, (self.alpha, self.beta))?;
 
         // What the next step starts from.
         match values {
@@ -450,8 +431,6 @@ impl VecStep {
         state.steps += 1;
         env.setattr(intern!(py, "_obs"), obs)?;
         env.setattr(intern!(py, "_values"), py.None())?;
-        let counted: u64 = env.getattr(intern!(py, "_env_steps"))?.extract()?;
-        env.setattr(intern!(py, "_env_steps"), counted + n as u64)?;
         Ok(Some(PyArray1::from_iter(
             py,
             answer.rewards.iter().map(|&r| r as f32),
@@ -535,20 +514,73 @@ impl VecStep {
             replaced,
         }))
     }
+}
 
-    /// `ShapedVecEnv._end_episode` for every env that ended: its sums (column `i` of
-    /// `acc`) into `info["shaped_episode"]` and the wrapper's `_ended`, then zeroed with
-    /// its column of `_taken`.
-    fn end_episodes(
-        &self,
-        py: Python<'_>,
-        env: &Bound<'_, PyAny>,
-        infos: &[Bound<'_, PyDict>],
-        done: &[bool],
-        steps: &[i64],
-        acc: &mut [f64],
-    ) -> PyResult<()> {
-        let n = done.len();
+/// One shaped vector step as the wrapper records it: the answer's columns, the
+/// environment rewards sent, the pool version after the step.
+struct Shaped<'a> {
+    r_meta: &'a [f64],
+    knn_rewards: &'a [f64],
+    potentials: &'a [f64],
+    knn_active: &'a [bool],
+    steps: &'a [i64],
+    env_rewards: &'a [f64],
+    pool_version: u64,
+}
+
+/// The one implementation of what `ShapedVecEnv` records of a shaped step, on both of its
+/// paths: the step added into the per-episode sums (`_acc`) and `_env_steps`, the six
+/// info keys, and for every env whose episode ended (`done`) its sums into
+/// `info["shaped_episode"]` and `_ended`, then zeroed with its column of `_taken`.
+/// `weights` are the task's alpha and beta (the episode's terms are reported weighted).
+fn record(
+    py: Python<'_>,
+    env: &Bound<'_, PyAny>,
+    infos: &[Bound<'_, PyDict>],
+    done: &[bool],
+    shaped: &Shaped<'_>,
+    (alpha, beta): (f64, f64),
+) -> PyResult<()> {
+    let n = done.len();
+    let columns = [
+        shaped.r_meta.len(),
+        shaped.knn_rewards.len(),
+        shaped.potentials.len(),
+        shaped.knn_active.len(),
+        shaped.steps.len(),
+        shaped.env_rewards.len(),
+        infos.len(),
+    ];
+    if columns.iter().any(|&len| len != n) {
+        return Err(PyValueError::new_err(format!(
+            "ShapedVecEnv: a step's columns must all have num_envs = {n} rows, got {columns:?}"
+        )));
+    }
+    let acc = env
+        .getattr(intern!(py, "_acc"))?
+        .cast_into::<PyArray2<f64>>()?;
+    let mut acc_rw = acc.try_readwrite()?;
+    let (Ok(acc), true) = (acc_rw.as_slice_mut(), acc.shape() == [SUMS, n]) else {
+        return Err(PyValueError::new_err(
+            "ShapedVecEnv: _acc is not a C-ordered (5, num_envs) array",
+        ));
+    };
+    for i in 0..n {
+        acc[i] += shaped.r_meta[i];
+        acc[n + i] += shaped.knn_rewards[i];
+        acc[2 * n + i] += shaped.potentials[i];
+        acc[3 * n + i] += if shaped.knn_active[i] { 1.0 } else { 0.0 };
+        acc[4 * n + i] += shaped.env_rewards[i];
+    }
+    for (i, info) in infos.iter().enumerate() {
+        info.set_item(intern!(py, "original_reward"), shaped.env_rewards[i])?;
+        info.set_item(intern!(py, "knn_reward"), shaped.knn_rewards[i])?;
+        info.set_item(intern!(py, "potential"), shaped.potentials[i])?;
+        info.set_item(intern!(py, "shaping_step"), shaped.steps[i])?;
+        info.set_item(intern!(py, "knn_active"), shaped.knn_active[i])?;
+        info.set_item(intern!(py, "pool_version"), shaped.pool_version)?;
+    }
+    if done.iter().any(|&d| d) {
         let taken = env
             .getattr(intern!(py, "_taken"))?
             .cast_into::<PyArray2<f64>>()?;
@@ -559,20 +591,20 @@ impl VecStep {
         let mut ended_rw = ended.try_readwrite()?;
         let (Ok(taken), Ok(ended)) = (taken_rw.as_slice_mut(), ended_rw.as_slice_mut()) else {
             return Err(PyValueError::new_err(
-                "VecStep: the wrapper's _taken and _ended must be C-ordered",
+                "ShapedVecEnv: _taken and _ended must be C-ordered",
             ));
         };
         if taken.len() != SUMS * n || ended.len() != SUMS {
             return Err(PyValueError::new_err(
-                "VecStep: the wrapper's _taken or _ended has the wrong shape",
+                "ShapedVecEnv: _taken or _ended has the wrong shape",
             ));
         }
         for i in (0..n).filter(|&i| done[i]) {
             let episode = PyDict::new(py);
             episode.set_item(intern!(py, "r"), acc[i])?;
-            episode.set_item(intern!(py, "knn"), self.alpha * acc[n + i])?;
-            episode.set_item(intern!(py, "potential"), self.beta * acc[2 * n + i])?;
-            episode.set_item(intern!(py, "l"), steps[i] + 1)?;
+            episode.set_item(intern!(py, "knn"), alpha * acc[n + i])?;
+            episode.set_item(intern!(py, "potential"), beta * acc[2 * n + i])?;
+            episode.set_item(intern!(py, "l"), shaped.steps[i] + 1)?;
             infos[i].set_item(intern!(py, "shaped_episode"), episode)?;
             for (j, sum) in ended.iter_mut().enumerate() {
                 let k = j * n + i;
@@ -581,6 +613,60 @@ impl VecStep {
                 taken[k] = 0.0;
             }
         }
-        Ok(())
     }
+    drop(acc_rw);
+    let counted: u64 = env.getattr(intern!(py, "_env_steps"))?.extract()?;
+    env.setattr(intern!(py, "_env_steps"), counted + n as u64)
+}
+
+/// `tamrm._native.record_step(env, infos, dones, env_rewards, result, alpha, beta)`:
+/// what `ShapedVecEnv`'s general path records of a step it shaped (see [`record`]), the
+/// same code as its fast path's. `result` is the session's `StepResult`; the arrays are
+/// read in any dtype numpy converts to the canonical ones.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+pub fn record_step(
+    py: Python<'_>,
+    env: &Bound<'_, PyAny>,
+    infos: &Bound<'_, PyAny>,
+    dones: &Bound<'_, PyAny>,
+    env_rewards: &Bound<'_, PyAny>,
+    result: &Bound<'_, PyAny>,
+    alpha: f64,
+    beta: f64,
+) -> PyResult<()> {
+    fn column<T: numpy::Element + Copy>(obj: &Bound<'_, PyAny>) -> PyResult<Vec<T>> {
+        let np = obj.py().import(intern!(obj.py(), "numpy"))?;
+        let array = np
+            .call_method1(
+                intern!(obj.py(), "asarray"),
+                (obj, numpy::dtype::<T>(obj.py())),
+            )?
+            .cast_into::<PyArray1<T>>()?;
+        let values = array.readonly().as_array().iter().copied().collect();
+        Ok(values)
+    }
+    let done: Vec<bool> = column(dones)?;
+    let n = done.len();
+    let Some(info_dicts) = info_dicts(infos, n) else {
+        return Err(pyo3::exceptions::PyTypeError::new_err(format!(
+            "ShapedVecEnv: infos must be a list or tuple of {n} dicts"
+        )));
+    };
+    let r_meta: Vec<f64> = column(&result.getattr(intern!(py, "rewards"))?)?;
+    let knn_rewards: Vec<f64> = column(&result.getattr(intern!(py, "knn_rewards"))?)?;
+    let potentials: Vec<f64> = column(&result.getattr(intern!(py, "potentials"))?)?;
+    let knn_active: Vec<bool> = column(&result.getattr(intern!(py, "knn_active"))?)?;
+    let steps: Vec<i64> = column(&result.getattr(intern!(py, "steps"))?)?;
+    let env_rewards: Vec<f64> = column(env_rewards)?;
+    let shaped = Shaped {
+        r_meta: &r_meta,
+        knn_rewards: &knn_rewards,
+        potentials: &potentials,
+        knn_active: &knn_active,
+        steps: &steps,
+        env_rewards: &env_rewards,
+        pool_version: result.getattr(intern!(py, "pool_version"))?.extract()?,
+    };
+    record(py, env, &info_dicts, &done, &shaped, (alpha, beta))
 }

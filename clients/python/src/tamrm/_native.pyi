@@ -71,6 +71,16 @@ class VecStep:
         infos: object,
     ) -> npt.NDArray[np.float32] | None: ...
 
+def record_step(
+    env: object,
+    infos: object,
+    dones: object,
+    env_rewards: object,
+    result: object,
+    alpha: float,
+    beta: float,
+) -> None: ...
+
 class Engine:
     def __init__(self, data_dir: str | Path | None = None) -> None: ...
     def call(self, method: str, request: bytes) -> bytes: ...

@@ -623,53 +623,12 @@ class ShapedVecEnv(VecEnvWrapper):
         result = self.session.step(
             actions, rewards, terminated, truncated, episode_scores=scores or None, **values
         )
-        # Per env: the sums of the episode so far. The native answer's (4, B) rows
-        # R_meta, r(t), F, knn_active are summed with one add, R with another.
-        parts = result._parts
-        if parts is None:
-            parts = np.stack(
-                (result.rewards, result.knn_rewards, result.potentials, result.knn_active)
-            )
-        self._acc[:4] += parts
-        self._acc[4] += rewards
-        self._env_steps += self.num_envs
-        for i in done_rows:
-            self._end_episode(i, infos[i], int(result.steps[i]) + 1)
-        # One conversion per column, not per entry (this loop runs every vector step).
-        columns = zip(
-            infos,
-            rewards.tolist(),
-            result.knn_rewards.tolist(),
-            result.potentials.tolist(),
-            result.steps.tolist(),
-            result.knn_active.tolist(),
-            strict=True,
-        )
-        pool_version = result.pool_version
-        for info, original, knn, potential, t, active in columns:
-            info["original_reward"] = original
-            info["knn_reward"] = knn
-            info["potential"] = potential
-            info["shaping_step"] = t
-            info["knn_active"] = active
-            info["pool_version"] = pool_version
+        # The episode sums, `_env_steps`, the info keys and `shaped_episode`: the same
+        # native code as the fast path's.
+        cfg = self.session.config
+        _native.record_step(self, infos, dones, rewards, result, cfg.alpha, cfg.beta)
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
-
-    def _end_episode(self, i: int, info: dict[str, Any], length: int) -> None:
-        """Put env ``i``'s finished episode into ``info["shaped_episode"]`` and the stats."""
-        column = self._acc[:, i]
-        shaped_r, knn_sum, potential_sum, _, _ = column.tolist()
-        cfg = self.session.config
-        info["shaped_episode"] = {
-            "r": shaped_r,
-            "knn": cfg.alpha * knn_sum,
-            "potential": cfg.beta * potential_sum,
-            "l": length,
-        }
-        self._ended += column - self._taken[:, i]
-        column[:] = 0.0
-        self._taken[:, i] = 0.0
 
 
 class ShapingLogger(BaseCallback):
