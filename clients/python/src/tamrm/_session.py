@@ -276,7 +276,7 @@ class Session(Closing):
             self._native.step, ids, act, rew, term, trunc, v, nv, q, nq, score_rows, score_values
         )
         parts, steps, active, pool_version = answer
-        return StepResult(parts[0], parts[1], parts[2], steps, active, pool_version, rows, parts)
+        return StepResult(parts[0], parts[1], parts[2], steps, active, pool_version, rows)
 
     def _call(self, method: Callable[..., _T], *args: Any) -> _T:
         """A native step call, its failures turned into this session's errors."""

@@ -252,10 +252,6 @@ class StepResult:
     knn_active: npt.NDArray[np.bool_]
     pool_version: int
     env_ids: npt.NDArray[np.int64]
-    #: Private: ``(4, B)`` float64 rows ``rewards``, ``knn_rewards``, ``potentials`` (the
-    #: arrays above are views of them) and ``knn_active`` as 0/1, for wrappers that sum
-    #: every step (one add instead of four); ``None`` when the result was built otherwise.
-    _parts: npt.NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
