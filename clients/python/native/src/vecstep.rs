@@ -395,14 +395,9 @@ impl VecStep {
             }),
         };
         let answer = guard.run(py, &args)?;
-        if answer.rewards.len() != n {
-            return Err(PyValueError::new_err(format!(
-                "VecStep: {} rewards for {n} envs",
-                answer.rewards.len()
-            )));
-        }
 
-        // The wrapper's per-episode sums and the info keys.
+        // The wrapper's per-episode sums and the info keys (`record` checks that every
+        // column of the answer has `n` rows before it changes anything).
         let shaped = Shaped {
             r_meta: &answer.rewards,
             knn_rewards: &answer.knn_rewards,
@@ -532,7 +527,7 @@ struct Shaped<'a> {
 /// paths: the step added into the per-episode sums (`_acc`) and `_env_steps`, the six
 /// info keys, and for every env whose episode ended (`done`) its sums into
 /// `info["shaped_episode"]` and `_ended`, then zeroed with its column of `_taken`.
-/// `weights` are the task's alpha and beta (the episode's terms are reported weighted).
+/// `(alpha, beta)` are the task's weights (the episode's terms are reported weighted).
 fn record(
     py: Python<'_>,
     env: &Bound<'_, PyAny>,
