@@ -79,4 +79,10 @@ def parser() -> argparse.ArgumentParser:
         type=Path,
         help="the first report's runs directory (e.g. experiments/runs-v1): shown as clean-v1",
     )
+    rep.add_argument(
+        "--readme",
+        type=Path,
+        help="also rewrite the generated summary of the claims in this README (between its "
+        "reproduction-summary markers)",
+    )
     return top

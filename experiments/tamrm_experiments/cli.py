@@ -42,11 +42,18 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary, indent=1))
         return 1 if summary["failed"] else 0
     if args.command == "report":
-        from tamrm_experiments.report import write_report
+        import os
+
+        from tamrm_experiments.report import readme_summary, update_readme, write_report
 
         plots = args.plots or args.out.with_suffix("")
-        write_report(args.runs, args.out, plots, args.previous)
+        analysis = write_report(args.runs, args.out, plots, args.previous)
         print(f"wrote {args.out} and plots in {plots}/")
+        if args.readme:
+            link = os.path.relpath(args.out, args.readme.resolve().parent)
+            summary = readme_summary(analysis, link)
+            changed = update_readme(args.readme, summary)
+            print(f"{'updated' if changed else 'unchanged'}: the summary in {args.readme}")
         return 0
     return 2
 

@@ -31,7 +31,16 @@ from tamrm_experiments.stats import (
     welch_p,
 )
 
-__all__ = ["Run", "load_runs", "run_metrics", "write_report"]
+__all__ = [
+    "Analysis",
+    "Run",
+    "analyse",
+    "load_runs",
+    "readme_summary",
+    "run_metrics",
+    "update_readme",
+    "write_report",
+]
 
 
 @dataclass
@@ -602,45 +611,91 @@ class ClaimRow:
         else:
             self.p = welch_p(self.arm_values, self.plain_values)
 
-    def verdict(self) -> tuple[str, str]:
-        """(word, why): ``holds``, ``does not hold`` or ``cannot be decided yet``."""
+    def judge(self) -> tuple[str, str]:
+        """(word, kind): the verdict's word and which case of it, one of ``too-few``,
+        ``censored``, ``holds``, ``opposite``, ``pending``, ``claimed-way``,
+        ``other-way`` (the last two: unadjusted p < 0.05, not after Holm) and ``none``."""
         n_a, n_p = len(self.arm_values), len(self.plain_values)
         if n_a < 2 or n_p < 2:
-            return "cannot be decided yet", f"{n_a} and {n_p} of {self.planned} seeds done"
+            return "cannot be decided yet", "too-few"
         sig = not math.isnan(self.p_holm) and self.p_holm < 0.05
-        sign = 0 if math.isnan(self.diff.mean) else (1 if self.diff.mean > 0 else -1)
-        if sig and sign == self.claim.direction:
+        if sig and self.sign == self.claim.direction:
             if self.censored and self.claim.direction == -1:
-                return "cannot be decided yet", "significant, but some totals are lower bounds"
-            return "holds", f"Holm-adjusted p = {self.p_holm:.3g}"
+                return "cannot be decided yet", "censored"
+            return "holds", "holds"
         if sig:
-            return "does not hold", (
+            return "does not hold", "opposite"
+        if not self.complete:
+            return "cannot be decided yet", "pending"
+        if not math.isnan(self.p) and self.p < 0.05:
+            way = "claimed-way" if self.sign == self.claim.direction else "other-way"
+            return "does not hold", way
+        return "does not hold", "none"
+
+    @property
+    def sign(self) -> int:
+        """The sign of the estimated (arm - plain): -1, 0 or +1."""
+        return 0 if math.isnan(self.diff.mean) else (1 if self.diff.mean > 0 else -1)
+
+    @property
+    def seeds(self) -> int:
+        """Seeds done in both arms."""
+        return min(len(self.arm_values), len(self.plain_values))
+
+    def verdict(self) -> tuple[str, str]:
+        """(word, why): ``holds``, ``does not hold`` or ``cannot be decided yet``."""
+        word, kind = self.judge()
+        n = self.seeds
+        if kind == "too-few":
+            n_a, n_p = len(self.arm_values), len(self.plain_values)
+            return word, f"{n_a} and {n_p} of {self.planned} seeds done"
+        if kind == "censored":
+            return word, "significant, but some totals are lower bounds"
+        if kind == "holds":
+            return word, f"Holm-adjusted p = {self.p_holm:.3g}"
+        if kind == "opposite":
+            return word, (
                 f"significant in the opposite direction (Holm-adjusted p = {self.p_holm:.3g})"
             )
         hint = ""
         if not math.isnan(self.p) and self.p < 0.05:
             hint = f"; unadjusted p = {self.p:.2g}, " + (
-                "in the claimed direction" if sign == self.claim.direction else "the other way"
+                "in the claimed direction" if self.sign == self.claim.direction else "the other way"
             )
-        if not self.complete:
-            return "cannot be decided yet", (
-                f"no significant difference with {min(n_a, n_p)} of {self.planned} seeds "
+        if kind == "pending":
+            return word, (
+                f"no significant difference with {n} of {self.planned} seeds "
                 "done (Holm-adjusted p = "
                 f"{self.p_holm:.2g}{hint})"
             )
-        if hint and sign == self.claim.direction:
+        if kind == "claimed-way":
             # A large but variable effect: say so rather than call it small.
-            return "does not hold", (
-                f"no significant difference at {min(n_a, n_p)} seeds after Holm's correction "
+            return word, (
+                f"no significant difference at {n} seeds after Holm's correction "
                 f"(Holm-adjusted p = {self.p_holm:.2g}{hint}): the estimate points the claimed "
                 "way, but the seeds vary too much for it to survive the correction for the "
                 "table's tests"
             )
-        return "does not hold", (
-            f"no significant difference at {min(n_a, n_p)} seeds (Holm-adjusted p = "
+        return word, (
+            f"no significant difference at {n} seeds (Holm-adjusted p = "
             f"{self.p_holm:.2g}{hint}): any effect in the claimed direction is smaller than "
             "these seeds resolve"
         )
+
+    def short_verdict(self) -> str:
+        """The verdict in a few words, for the README's summary."""
+        word, kind = self.judge()
+        why = {
+            "too-few": f"{self.seeds} of {self.planned} seeds done",
+            "censored": "significant, but some totals are lower bounds",
+            "holds": "",
+            "opposite": "significant the other way",
+            "pending": f"{self.seeds} of {self.planned} seeds done",
+            "claimed-way": "the claimed way, not significant after Holm",
+            "other-way": "the other way, not significant after Holm",
+            "none": "no significant difference",
+        }[kind]
+        return f"**{word}**" + (f": {why}" if why else "")
 
     def cell(self) -> str:
         """The measured cell: both arms, the difference, the test."""
@@ -890,21 +945,29 @@ def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
         if not plain or any(r.variant != variant for r in plain):
             continue  # none, or another variant's plain runs (listed under that variant)
         exp = EXPERIMENTS[exp_name]
-        first = t_interval([float(r.df["steps"].head(20).mean()) for r in plain])
-        last = t_interval([float(r.df["steps"].tail(20).mean()) for r in plain])
-        higher = exp.headline == "mean_steps"
-        if math.isnan(last.low):
-            learns = "n=1"
-        elif higher:
-            learns = "yes" if last.low > first.high else "not detectably"
-        else:
-            learns = "yes" if last.high < first.low else "not detectably"
+        first, last, learns = _plain_learns(exp_name, plain)
         lines.append(
             f"| {exp.short} | {exp.variant(variant).label} | {len(plain)} | "
             f"{_fmt_interval(first, '{:,.1f}')} | {_fmt_interval(last, '{:,.1f}')} | {learns} |"
         )
     lines.append("")
     return lines
+
+
+def _plain_learns(exp_name: str, plain: list[Run]) -> tuple[Interval, Interval, str]:
+    """Mean steps per episode over the first and the last 20 episodes of the plain runs
+    (t-intervals over seeds), and whether the last 20 are detectably better: ``yes``,
+    ``not detectably`` or ``n=1``."""
+    plain = [r for r in plain if len(r.df) >= 40]
+    first = t_interval([float(r.df["steps"].head(20).mean()) for r in plain])
+    last = t_interval([float(r.df["steps"].tail(20).mean()) for r in plain])
+    if math.isnan(last.low):
+        return first, last, "n=1"
+    if EXPERIMENTS[exp_name].headline == "mean_steps":  # more steps kept up is better
+        better = last.low > first.high
+    else:
+        better = last.high < first.low
+    return first, last, "yes" if better else "not detectably"
 
 
 def _backends(runs: list[Run]) -> str:
@@ -959,20 +1022,57 @@ def _cost(groups: dict[Group, list[Run]], requested: list[tuple[str, str, str, i
     return lines
 
 
-def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | None = None) -> None:
-    """Write the markdown page ``out`` and the plots into ``plots_dir``.
+@dataclass
+class Analysis:
+    """Everything the report and the README's summary compute from the runs."""
 
-    ``previous``: a runs directory of the first report (runs without a variant), shown as
-    the ``clean-v1`` variant: complete as it stands (nothing pending)."""
-    runs = load_runs(runs_dir)
+    runs_dir: Path
+    current: list[Run]  # the runs of ``runs_dir``
+    earlier: list[Run]  # the first report's runs, as variant ``clean-v1``
+    requested: list[tuple[str, str, str, int]]
+    groups: dict[Group, list[Run]]
+    rows: list[ClaimRow]
+
+    @property
+    def runs(self) -> list[Run]:
+        """Current and earlier runs."""
+        return self.current + self.earlier
+
+    @property
+    def progress(self) -> tuple[int, int]:
+        """(finished, requested) runs of the current grid."""
+        asked = set(self.requested)
+        done = sum(1 for r in self.current if (r.experiment, r.variant, r.arm, r.seed) in asked)
+        return done, len(self.requested) - len(self.earlier)
+
+
+def analyse(runs_dir: Path, previous: Path | None = None) -> Analysis:
+    """Load the runs (and the first report's, ``previous``: runs without a variant, shown
+    as the ``clean-v1`` variant, complete as they stand) and measure every claim."""
+    current = load_runs(runs_dir)
     earlier = []
     if previous is not None and previous.is_dir():
         for r in load_runs(previous):
             if "variant" not in r.meta["spec"]:
                 r.variant = "clean-v1"
                 earlier.append(r)
-    current = runs
-    runs = current + earlier
+    requested = _requested(runs_dir) or [(r.experiment, r.variant, r.arm, r.seed) for r in current]
+    requested += [(r.experiment, r.variant, r.arm, r.seed) for r in earlier]
+    groups = _groups(current + earlier, requested)
+    rows = _claim_rows(groups, requested) if current or earlier else []
+    return Analysis(runs_dir, current, earlier, requested, groups, rows)
+
+
+def write_report(
+    runs_dir: Path, out: Path, plots_dir: Path, previous: Path | None = None
+) -> Analysis:
+    """Write the markdown page ``out`` and the plots into ``plots_dir``; return what it
+    was computed from.
+
+    ``previous``: a runs directory of the first report (runs without a variant), shown as
+    the ``clean-v1`` variant: complete as it stands (nothing pending)."""
+    an = analyse(runs_dir, previous)
+    runs, current, earlier, groups = an.runs, an.current, an.earlier, an.groups
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         plots_rel = str(plots_dir.resolve().relative_to(out.parent.resolve()))
@@ -999,10 +1099,8 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
     if not runs:
         lines += ["No finished runs yet.", ""]
         out.write_text("\n".join(lines))
-        return
-    requested = _requested(runs_dir) or [(r.experiment, r.variant, r.arm, r.seed) for r in current]
-    requested += [(r.experiment, r.variant, r.arm, r.seed) for r in earlier]
-    groups = _groups(runs, requested)
+        return an
+    requested = an.requested
     profiles = sorted({r.meta["spec"]["profile"] for r in runs})
     if "quick" in profiles:
         lines += [
@@ -1010,9 +1108,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
             "nothing about the method.",
             "",
         ]
-    asked = set(requested)
-    n_req = len(requested) - len(earlier)
-    n_done = sum(1 for r in current if (r.experiment, r.variant, r.arm, r.seed) in asked)
+    n_done, n_req = an.progress
     lines += [
         "## Claims",
         "",
@@ -1022,7 +1118,7 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
         + "; the grid is resumable and later sessions continue it.",
         "",
     ]
-    lines += _claims_table(_claim_rows(groups, requested))
+    lines += _claims_table(an.rows)
     lines += ["## Status of the grid", ""]
     lines += _status(groups, requested, _partials(runs_dir))
     lines += _shared_plain(groups, runs)
@@ -1040,6 +1136,126 @@ def write_report(runs_dir: Path, out: Path, plots_dir: Path, previous: Path | No
     lines += [f"- {r}" for r in READING]
     lines += [""]
     out.write_text("\n".join(lines))
+    return an
+
+
+# -- the README's summary --------------------------------------------------------------
+
+#: The lines around the README's generated summary of the claims table.
+README_BEGIN = (
+    "<!-- reproduction summary: generated by `python -m tamrm_experiments report "
+    "--readme README.md` from the raw runs; do not edit by hand -->"
+)
+README_END = "<!-- end of the reproduction summary -->"
+
+
+def _short_fmt(*values: float) -> str:
+    """One format for a row's numbers: no decimals once any of them reaches 1,000."""
+    return "{:,.0f}" if max(abs(v) for v in values) >= 1000 else "{:,.1f}"
+
+
+def readme_summary(an: Analysis, report_link: str = "docs/reproduction.md") -> list[str]:
+    """The claims table in brief: one row per claim and variant, with whether that
+    variant's plain learner learns at all (the pilot's test), the arms' means, the
+    difference, the Holm-adjusted p and the verdict. Computed from the runs like the
+    report, so the README cannot drift from it."""
+    if not an.rows:
+        return ["No finished runs yet."]
+    # Grouped by claim, in the experiments' and their claims' order.
+    exp_order = {name: i for i, name in enumerate(EXPERIMENTS)}
+    rows = sorted(
+        an.rows,
+        key=lambda r: (
+            exp_order[r.exp_name],
+            [c.text for c in EXPERIMENTS[r.exp_name].claims].index(r.claim.text),
+        ),
+    )
+    counts = Counter(row.judge()[0] for row in rows)
+    holding = [row for row in rows if row.judge()[0] == "holds"]
+    n_done, n_req = an.progress
+    lines = [
+        f"{n_done} of the {n_req} runs of the current grid are finished"
+        + (f", besides the first report's {len(an.earlier)}" if an.earlier else "")
+        + f". The {len(rows)} claim tests (Holm-corrected together): "
+        + ", ".join(f"{w} {counts[w]}" for w in ("holds", "does not hold", "cannot be decided yet"))
+        + "."
+        + (
+            " Holding: "
+            + "; ".join(
+                f"{EXPERIMENTS[r.exp_name].short}: {r.claim.text} "
+                f"({EXPERIMENTS[r.exp_name].variant(r.variant).label})"
+                for r in holding
+            )
+            + "."
+            if holding
+            else ""
+        )
+        + f" Intervals, single terms, plots and how each verdict is reached: [the report]"
+        f"({report_link}).",
+        "",
+        "| claim | variant | plain learns? | ours (mean over seeds) | arm - plain [95% CI] "
+        "| Holm p | verdict |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    learns: dict[Group, str] = {}
+    last_claim = ""
+    for row in rows:
+        exp = EXPERIMENTS[row.exp_name]
+        key = (row.exp_name, row.variant)
+        if key not in learns:
+            plain = [r for r in an.groups[key] if r.arm == "plain"]
+            learns[key] = _plain_learns(row.exp_name, plain)[2] if plain else "-"
+        claim = f"{exp.short}: {row.claim.text}"
+        arm = ARMS[row.claim.arm].short
+        if row.claim.metric == "solved":
+            ours = (
+                f"{arm} {int(sum(row.arm_values))}/{len(row.arm_values)} solved, plain "
+                f"{int(sum(row.plain_values))}/{len(row.plain_values)}"
+            )
+            diff = "-"
+        else:
+            a, b = float(np.mean(row.arm_values)), float(np.mean(row.plain_values))
+            fmt = _short_fmt(a, b)
+            prefix = "≥ " if row.censored and row.claim.metric in CENSORABLE else ""
+            ours = f"{prefix}{arm} {fmt.format(a)}, plain {fmt.format(b)}"
+            d = row.diff
+            diff = (
+                "-"
+                if math.isnan(d.low)
+                else f"{'+' if d.mean > 0 else ''}{fmt.format(d.mean)} "
+                f"[{fmt.format(d.low)}, {fmt.format(d.high)}]"
+            )
+        holm_p = "-" if math.isnan(row.p_holm) else f"{row.p_holm:.2g}"
+        lines.append(
+            f"| {claim if claim != last_claim else ''} | {exp.variant(row.variant).label} | "
+            f"{learns[key]} | {ours} | {diff} | {holm_p} | {row.short_verdict()} |"
+        )
+        last_claim = claim
+    return lines
+
+
+def update_readme(readme: Path, summary: list[str]) -> bool:
+    """Replace the text between :data:`README_BEGIN` and :data:`README_END` in ``readme``
+    with ``summary``. Returns whether the file changed; raises ``ValueError`` if the
+    markers are missing."""
+    text = readme.read_text()
+    block = readme_block(text)
+    if block is None:
+        raise ValueError(f"{readme}: no lines {README_BEGIN!r} ... {README_END!r}")
+    new = "\n".join(summary)
+    if block == new:
+        return False
+    head, rest = text.split(README_BEGIN + "\n", 1)
+    tail = rest.split("\n" + README_END, 1)[1]
+    readme.write_text(head + README_BEGIN + "\n" + new + "\n" + README_END + tail)
+    return True
+
+
+def readme_block(text: str) -> str | None:
+    """The README's generated summary as it stands (``None`` without the markers)."""
+    if README_BEGIN + "\n" not in text or "\n" + README_END not in text:
+        return None
+    return text.split(README_BEGIN + "\n", 1)[1].split("\n" + README_END, 1)[0]
 
 
 def _backend_counts(runs: list[Run]) -> str:

@@ -1,4 +1,5 @@
 import json
+import math
 from dataclasses import replace
 
 from synthetic import write_run
@@ -166,3 +167,72 @@ def test_a_large_variable_effect_that_fails_holm_is_not_called_small():
     small.measure()
     small.p_holm = 1.0
     assert "smaller than these seeds resolve" in small.verdict()[1]
+
+
+def _row(arm, plain, p_holm, planned=10, direction=-1):
+    from tamrm_experiments.experiments.base import Claim
+    from tamrm_experiments.report import ClaimRow
+
+    claim = Claim("TAMRM needs fewer steps", "-7%", "tamrm", "total_steps", direction)
+    row = ClaimRow("maze", "clean", claim, arm, plain, planned=planned)
+    row.measure()
+    row.p_holm = p_holm
+    return row
+
+
+def test_the_short_verdict_says_the_same_as_the_long_one():
+    plain = [100.0, 102.0, 98.0, 101.0, 99.0] * 2
+    fewer = [50.0, 52.0, 48.0, 51.0, 49.0] * 2
+    more = [150.0, 152.0, 148.0, 151.0, 149.0] * 2
+    cases = [
+        (_row(fewer, plain, 0.001), "holds", "**holds**"),
+        (_row(more, plain, 0.001), "does not hold", "significant the other way"),
+        (_row(fewer, plain, 0.2), "does not hold", "the claimed way, not significant after Holm"),
+        (_row(more, plain, 0.2), "does not hold", "the other way, not significant after Holm"),
+        (_row([v + 0.5 for v in plain], plain, 1.0), "does not hold", "no significant difference"),
+        (_row(fewer[:4], plain[:4], 0.2, planned=10), "cannot be decided yet", "4 of 10 seeds"),
+        (_row(fewer[:1], plain, math.nan), "cannot be decided yet", "1 of 10 seeds"),
+    ]
+    for row, word, short in cases:
+        assert row.verdict()[0] == word
+        assert row.short_verdict().startswith(f"**{word}**")
+        assert short in row.short_verdict()
+
+
+def test_update_readme_rewrites_only_the_generated_block(tmp_path):
+    import pytest
+
+    from tamrm_experiments.report import README_BEGIN, README_END, readme_block, update_readme
+
+    readme = tmp_path / "README.md"
+    readme.write_text(
+        f"# title\n\nhand text\n{README_BEGIN}\nold\n{README_END}\n\nmore hand text\n"
+    )
+    assert update_readme(readme, ["new line 1", "", "new line 2"])
+    text = readme.read_text()
+    assert readme_block(text) == "new line 1\n\nnew line 2"
+    assert text.startswith("# title\n\nhand text\n") and text.endswith("\n\nmore hand text\n")
+    assert not update_readme(readme, ["new line 1", "", "new line 2"])  # idempotent
+    readme.write_text("no markers\n")
+    with pytest.raises(ValueError, match="no lines"):
+        update_readme(readme, ["x"])
+
+
+def test_the_readme_summary_follows_the_packed_runs(tmp_path):
+    """The README's table is what the report computes from the runs it ships with
+    (docs/reproduction/raw-runs.tar.gz): regenerate it and compare, line by line."""
+    import tarfile
+    from pathlib import Path
+
+    from tamrm_experiments.report import analyse, readme_block, readme_summary
+
+    root = Path(__file__).resolve().parents[2]
+    with tarfile.open(root / "docs/reproduction/raw-runs.tar.gz") as tar:
+        tar.extractall(tmp_path, filter="data")
+    summary = readme_summary(analyse(tmp_path / "runs", tmp_path / "runs-v1"))
+    block = readme_block((root / "README.md").read_text())
+    assert block is not None, "README.md lost its reproduction-summary markers"
+    assert block.splitlines() == summary, (
+        "README.md's reproduction summary is stale: run `python -m tamrm_experiments "
+        "report --runs runs --previous runs-v1 --readme ../README.md` from experiments/"
+    )

@@ -75,15 +75,17 @@ class Arm:
     label: str
     knn: bool
     potential: bool
+    #: Its name in compact tables (the README's summary).
+    short: str = ""
 
 
 ARMS: dict[str, Arm] = {
     arm.name: arm
     for arm in (
-        Arm("plain", "plain (no shaping)", knn=False, potential=False),
-        Arm("pbrs", "PBRS only (alpha = 0)", knn=False, potential=True),
-        Arm("knn", "kNN only (beta = 0)", knn=True, potential=False),
-        Arm("tamrm", "TAMRM (kNN + PBRS)", knn=True, potential=True),
+        Arm("plain", "plain (no shaping)", knn=False, potential=False, short="plain"),
+        Arm("pbrs", "PBRS only (alpha = 0)", knn=False, potential=True, short="PBRS only"),
+        Arm("knn", "kNN only (beta = 0)", knn=True, potential=False, short="kNN only"),
+        Arm("tamrm", "TAMRM (kNN + PBRS)", knn=True, potential=True, short="TAMRM"),
     )
 }
 
