@@ -168,9 +168,9 @@ pub struct NativeStream {
     opened: Vec<u8>,
 }
 
-/// What a step returns to Python: the float columns as the rows of one `(4, B)` array
-/// (R_meta, r(t), F, knn_active as 0/1: a wrapper sums them with one add), the step
-/// indices, knn_active, and the pool version.
+/// What a step returns to Python: the float columns as the rows of one `(3, B)` array
+/// (R_meta, r(t), F: one allocation instead of three), the step indices, knn_active,
+/// and the pool version.
 type StepAnswer<'py> = (
     Bound<'py, PyArray2<f64>>,
     Bound<'py, PyArray1<i64>>,
@@ -223,8 +223,8 @@ impl NativeStream {
     }
 
     /// Shapes one step. Arrays as documented in `tamrm._session`; returns
-    /// `(parts, steps, knn_active, pool_version)`, `parts` the `(4, B)` float64 rows
-    /// rewards, knn_rewards, potentials, knn_active (0/1).
+    /// `(parts, steps, knn_active, pool_version)`, `parts` the `(3, B)` float64 rows
+    /// rewards, knn_rewards, potentials.
     #[pyo3(signature = (env_ids, actions, rewards, terminated, truncated, values, next_values, q_values, next_q_values, score_rows, score_values))]
     #[allow(clippy::too_many_arguments)]
     fn step<'py>(
@@ -340,12 +340,11 @@ impl NativeStream {
 fn answer_arrays(py: Python<'_>, a: Answer, pool_version: u64) -> StepAnswer<'_> {
     let n = a.rewards.len();
     let mut parts = a.rewards;
-    parts.reserve_exact(3 * n);
+    parts.reserve_exact(2 * n);
     parts.extend_from_slice(&a.knn_rewards);
     parts.extend_from_slice(&a.potentials);
-    parts.extend(a.knn_active.iter().map(|&on| if on { 1.0 } else { 0.0 }));
-    let parts = numpy::ndarray::Array2::from_shape_vec((4, n), parts)
-        .unwrap_or_else(|_| unreachable!("4 columns of n entries"));
+    let parts = numpy::ndarray::Array2::from_shape_vec((3, n), parts)
+        .unwrap_or_else(|_| unreachable!("3 columns of n entries"));
     (
         PyArray2::from_owned_array(py, parts),
         a.steps.into_pyarray(py),

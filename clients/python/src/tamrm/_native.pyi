@@ -8,7 +8,7 @@ import numpy.typing as npt
 class StatusError(Exception):
     """A failed call: ``args == (code: int, message: str)``, the gRPC status."""
 
-# (parts: (4, B) rows R_meta, r(t), F, knn_active as 0/1; steps; knn_active; pool version)
+# (parts: (3, B) rows R_meta, r(t), F; steps; knn_active; pool version)
 _Answer = tuple[
     npt.NDArray[np.float64],
     npt.NDArray[np.int64],
