@@ -1,8 +1,9 @@
 //! The seed corpora (`fuzz/corpus/<target>/seed-*`): the requests of the test suites
-//! (tests/bad_input.rs, tests/server.rs, the session tests) in the targets' input formats,
-//! valid ones and ones each rule of SPEC §8 refuses, and for the disk target every file of
-//! a real data dir. A target started with `TAMRM_FUZZ_SEEDS=DIR` writes its seeds there
-//! (fuzz/run.sh does, when a corpus is missing).
+//! (tests/integration/bad_input.rs, tests/integration/server.rs, the session tests) in the
+//! targets' input formats, valid ones and ones each rule of SPEC §8 refuses, and for the
+//! disk target every file of a real data dir. A target started with
+//! `TAMRM_FUZZ_SEEDS=DIR` writes its seeds there (fuzz/run.sh does, when a corpus is
+//! missing).
 
 use std::path::Path;
 

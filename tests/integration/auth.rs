@@ -3,12 +3,11 @@
 //! key file read again on SIGHUP without dropping open streams, and data written before
 //! tenants existed.
 
-mod common;
-
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::*;
+use crate::common;
+use crate::common::*;
 use tamrm::auth::{hash_key, Role, SHAPING_ROLES};
 use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
 use tokio::sync::mpsc;

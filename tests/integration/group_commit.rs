@@ -2,12 +2,11 @@
 //! survive a crash (the store dropped without any flush; a real server killed with
 //! SIGKILL), a torn last group is dropped at every byte offset, an earlier corrupt one is
 //! reported, concurrent commits lose nothing, compaction and migration keep everything.
-mod common;
 
 use std::path::Path;
 use std::sync::Arc;
 
-use common::*;
+use crate::common::*;
 use tamrm::core::{ActionSeq, Pool, TaskConfig, TaskConfigInput};
 use tamrm::store::{Counters, DiskStore, PoolOp, Store, StoreError, StoredTask};
 

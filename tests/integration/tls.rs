@@ -3,8 +3,7 @@
 //! incoming wrapper, tonic clients that trust the right CA, another CA, or speak
 //! plaintext, `tamrm healthcheck` over TLS, and the start errors for bad files.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

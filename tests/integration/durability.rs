@@ -1,13 +1,12 @@
 //! Durability and process behaviour: restarts restore everything, acknowledged changes
 //! survive a crash, corrupt state is refused naming the file, graceful shutdown, and the
 //! settings sources of the real binary.
-mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
-use common::*;
+use crate::common::*;
 use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse, StepBatch};
 use tamrm::settings::Settings;
 use tonic::Code;

@@ -23,8 +23,7 @@
 //!   be sent must be refused before it is applied. The two tests at the end of the file
 //!   check this and fail against the server as of this commit.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 use std::collections::HashMap;
 use std::future::Future;

@@ -3,11 +3,10 @@
 //! Redis Cluster: replicas are real servers on 127.0.0.1:0 (in-process, or the real
 //! binary where a test kills one with -9).
 
-mod common;
-
 use std::time::{Duration, Instant};
 
-use common::{
+use crate::common;
+use crate::common::{
     batch, connect, create, discrete, dtraj, get_pool, get_task, Binary, Client, RedisCluster,
     RedisServer, Stream,
 };

@@ -1,8 +1,8 @@
 //! The Shaping API end to end: a real server on a real socket, driven by the generated
 //! tonic client, checked against a small naive reference model written from SPEC §2–§6.
-mod common;
 
-use common::*;
+use crate::common;
+use crate::common::*;
 use tamrm::proto::{self, StepBatch};
 use tonic::Code;
 

@@ -1,9 +1,7 @@
 //! Prometheus metrics end to end: a real server on 127.0.0.1:0 with `/metrics` on its own
 //! port, real RPCs, and the counters read back over HTTP.
 
-mod common;
-
-use common::{batch, connect, create, discrete, get_task, start_server, Stream};
+use crate::common::{batch, connect, create, discrete, get_task, start_server, Stream};
 use tamrm::proto;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 

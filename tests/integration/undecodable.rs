@@ -3,8 +3,7 @@
 //! nothing changes. The requests are raw bytes sent through a codec that does not encode,
 //! to a real server on 127.0.0.1:0.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 use std::time::Duration;
 

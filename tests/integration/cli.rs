@@ -1,8 +1,7 @@
 //! The `tamrm` binary's commands other than `serve`: `tamrm healthcheck` against a real
 //! server on 127.0.0.1:0, serving, shut down, and never there.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 use std::process::Command;
 

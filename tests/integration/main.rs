@@ -1,0 +1,17 @@
+//! The integration tests: real servers on real sockets (127.0.0.1:0), real child
+//! processes, real Redis. One test binary rather than one per file: each binary linked the
+//! whole server and tonic's generics again, which made building the tests take several
+//! times longer than running them.
+
+mod common;
+
+mod auth;
+mod bad_input;
+mod cli;
+mod durability;
+mod group_commit;
+mod metrics;
+mod redis;
+mod server;
+mod tls;
+mod undecodable;
