@@ -46,6 +46,10 @@ pub enum Error {
     /// was not applied and the call may succeed later.
     #[error("{0}")]
     StoreUnavailable(String),
+    /// The stream's state no longer matches the store: the client must resume it on a new
+    /// stream and re-send its last batch (SPEC §9); what was committed stays committed.
+    #[error("{0}")]
+    ResumeNeeded(String),
     /// Persisting a change failed; the change was not applied.
     #[error("storage error, change not applied: {0}")]
     Storage(StoreError),

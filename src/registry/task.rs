@@ -222,6 +222,12 @@ impl TaskHandle {
         self.ended.lock().contains(client, env, number)
     }
 
+    /// Per env, how many episode ends of `client` were committed (the number of its next
+    /// episode), as far as this server knows; see [`TaskHandle::learn_ended`].
+    pub fn ended_counts(&self, client: &str) -> Vec<(u32, u64)> {
+        self.ended.lock().counts(client)
+    }
+
     /// Learns from the store which episode ends of `client` it committed: a store shared
     /// with other servers (a stream that broke on another server is resumed here), or a
     /// data dir this server (or an earlier run of it) wrote (SPEC §9).
@@ -256,6 +262,12 @@ impl TaskHandle {
         marks: Option<(&str, &[(u32, u64)])>,
     ) -> Result<Committed, Error> {
         let committed = self.commit_locked(&writer, ops).await?;
+        if committed.resent > 0 {
+            // Ends another server committed meanwhile (SPEC §9): counted by the stream as
+            // it planned them, but they are no episodes completed here.
+            self.episodes_completed
+                .fetch_sub(committed.resent as u64, Ordering::Relaxed);
+        }
         if let Some((client, ends)) = marks {
             let counts = ends
                 .iter()

@@ -13,7 +13,9 @@ impl From<Error> for Status {
             Error::ResourceExhausted(_) => Code::ResourceExhausted,
             Error::Unauthenticated(_) => Code::Unauthenticated,
             Error::PermissionDenied(_) => Code::PermissionDenied,
-            Error::ShuttingDown | Error::StoreUnavailable(_) => Code::Unavailable,
+            Error::ShuttingDown | Error::StoreUnavailable(_) | Error::ResumeNeeded(_) => {
+                Code::Unavailable
+            }
             Error::Storage(_) => Code::Internal,
         };
         if code == Code::Internal {

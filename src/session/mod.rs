@@ -197,10 +197,17 @@ impl StreamSession {
                 Episode::resume(actions, r.reward_sum, config.max_trajectory_len);
             episode_no[r.env_id as usize] = r.episode;
         }
-        if !req.client_id.is_empty() && !req.resume.is_empty() {
-            // A stream that broke on another server: what that server committed for this
-            // client must not be committed again (SPEC §9).
+        if !req.client_id.is_empty() {
+            // What the store committed for this client (on another server, or before a
+            // restart) must not be committed again (SPEC §9), resumed or not.
             task.learn_ended(req.client_id).await?;
+            // An env not listed starts a new episode: the one after the last end committed
+            // for it, not episode 0, which would be taken for a re-send and dropped.
+            for (env, count) in task.ended_counts(req.client_id) {
+                if let Some(false) = seen.get(env as usize) {
+                    episode_no[env as usize] = count;
+                }
+            }
         }
         let guard = task.open_stream()?;
         Ok(StreamSession {
@@ -304,7 +311,21 @@ impl StreamSession {
         let episodes_ended = ops.len();
         if let Some(w) = writer {
             let marks = self.client_id.as_deref().map(|c| (c, ended.as_slice()));
-            pool = self.task.commit_ends(w, ops, marks).await?.pool;
+            let committed = self.task.commit_ends(w, ops, marks).await?;
+            if committed.resent > 0 {
+                // Another server committed one of these ends after this stream learnt the
+                // client's record: the entries after it were shaped against a pool that
+                // never existed, and this stream's episodes remember it. Its other changes
+                // are committed; a resumed stream learns the record and re-sending the
+                // batch gives the right answer (SPEC §9).
+                return Err(Error::ResumeNeeded(format!(
+                    "{} episode end(s) of this batch were committed meanwhile by another \
+                     server for client {:?}: resume the stream and re-send the batch",
+                    committed.resent,
+                    self.client_id.as_deref().unwrap_or_default()
+                )));
+            }
+            pool = committed.pool;
         }
         Ok(Shaped {
             outputs: &self.outputs,

@@ -100,6 +100,11 @@ pub struct Committed {
     /// servers may return a `pool` that already holds later changes of theirs, with a
     /// higher version; this one is the commit's own (SPEC §10: one version per change).
     pub version: u64,
+    /// How many of the offers were episode ends the store already had committed (by
+    /// another server, after this one last learnt the client's record): not offered,
+    /// and not counted in `episodes_completed`. Always 0 for a store that is not shared:
+    /// the server itself decides re-sent ends before committing (SPEC §9).
+    pub resent: usize,
 }
 
 impl Committed {
@@ -110,6 +115,7 @@ impl Committed {
             pool,
             changed,
             version,
+            resent: 0,
         }
     }
 }

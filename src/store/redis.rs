@@ -215,6 +215,7 @@ local cap, version, next_seq = tonumber(m[1]), tonumber(m[2]), tonumber(m[3])
 local before, seq_before = version, next_seq
 local out = {1, before, 0, seq_before}
 local marked = false
+local resent = 0
 local i = 8
 for op = 1, tonumber(ARGV[7]) do
   local kind = ARGV[i]
@@ -232,6 +233,7 @@ for op = 1, tonumber(ARGV[7]) do
     end
     if dup then
       changed = 2
+      resent = resent + 1
     else
       local size = redis.call('HLEN', KEYS[3])
       local replaces = nil
@@ -270,7 +272,8 @@ for op = 1, tonumber(ARGV[7]) do
   i = i + 5
 end
 redis.call('HSET', KEYS[1], 'version', version, 'next_seq', next_seq)
-redis.call('HINCRBY', KEYS[1], 'episodes_completed', ARGV[4])
+-- Δepisodes counted the re-sent ends too: they are not episodes completed.
+redis.call('HINCRBY', KEYS[1], 'episodes_completed', math.max(0, tonumber(ARGV[4]) - resent))
 redis.call('HINCRBY', KEYS[1], 'steps_shaped', ARGV[5])
 if marked then redis.call('EXPIRE', KEYS[4], ARGV[6]) end
 if version ~= before then
@@ -506,7 +509,18 @@ impl RedisStore {
                 task: task.to_string(),
             });
         }
-        self.wrote(task, counters);
+        // The script did not count the re-sent ends; the handle takes them back from its
+        // own count too (`TaskHandle::commit_ends`), so the next increment stays exact.
+        let resent = out
+            .get(4..)
+            .map_or(0, |d| d.iter().filter(|&&c| c == 2).count());
+        self.wrote(
+            task,
+            Counters {
+                episodes_completed: counters.episodes_completed.saturating_sub(resent as u64),
+                ..counters
+            },
+        );
         Ok(out)
     }
 
@@ -757,6 +771,7 @@ impl Store for RedisStore {
             pool: Arc::new(pool),
             changed,
             version: after,
+            resent: decided.iter().filter(|&&c| c == 2).count(),
         })
     }
 

@@ -583,3 +583,57 @@ async fn every_replica_reports_the_counters_of_every_replica() {
     let mut cl = connect(late.addr()).await;
     assert_eq!(counters(get_task(&mut cl, "t").await), (10, 16));
 }
+
+/// SPEC §9 and §10: a client resumes on B while A is still committing the batch whose
+/// answer it lost. B learnt the client's record before A's commit, so it plans the re-sent
+/// end as new; Redis refuses it as a re-send. Then the rest of B's batch was shaped
+/// against a pool that never existed: the stream fails with UNAVAILABLE (resume and
+/// re-send), the refused end is not counted, and the re-sent batch on a resumed stream
+/// gets A's answer exactly.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_end_another_replica_committed_meanwhile_fails_the_stream_not_the_pool() {
+    let redis = RedisServer::start();
+    let (a, b) = (replica(&redis.url()).await, replica(&redis.url()).await);
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    create(&mut ca, "t", discrete(3, 4, 2, 0, 1)).await;
+    common::add(&mut ca, "t", dtraj(&[1, 0, 2], 1.0)).await;
+    eventually("B sees the pool", || {
+        let mut c = cb.clone();
+        async move { get_pool(&mut c, "t").await.pool_version == 1 }
+    })
+    .await;
+    // Env 0 is in its episode 4 at t = 2; env 1 at t = 0 of its episode 0.
+    let mut eps = Episodes::default();
+    eps.actions[0] = vec![1, 1];
+    eps.reward_sum[0] = 2.0;
+    eps.ended[0] = 4;
+    // The lost batch: env 0's episode ends, env 1 steps.
+    let lost = batch(&[1, 1], &[1.0, 0.5], &[true, false]);
+    let mut on_b = open_resumed(&mut cb, "t", &eps).await;
+    let mut on_a = open_resumed(&mut ca, "t", &eps).await;
+    let answer_a = on_a.step(lost.clone()).await.unwrap();
+    assert_eq!(answer_a.pool_version, 2, "A stored the end");
+    let e = on_b.step(lost.clone()).await.unwrap_err();
+    assert_eq!(e.code(), Code::Unavailable, "{e:?}");
+    assert!(e.message().contains("resume the stream"), "{}", e.message());
+    // One copy stored, counted once, on either replica.
+    let episodes = |task: proto::Task| task.stats.unwrap().episodes_completed;
+    for c in [&mut ca, &mut cb] {
+        let pool = get_pool(c, "t").await;
+        assert_eq!(pool.pool_version, 2);
+        let stored: Vec<_> = pool.trajectories.iter().map(|t| t.score).collect();
+        assert_eq!(stored, [1.0, 3.0], "the end once, not twice");
+    }
+    for c in [ca.clone(), cb.clone()] {
+        eventually("one episode completed", || {
+            let mut c = c.clone();
+            async move { episodes(get_task(&mut c, "t").await) == 1 }
+        })
+        .await;
+    }
+    // Resumed on B (which now learns A's commit) and re-sent: A's answer, bit for bit.
+    let mut on_b = open_resumed(&mut cb, "t", &eps).await;
+    assert_eq!(on_b.step(lost).await.unwrap(), answer_a);
+    assert_eq!(get_pool(&mut cb, "t").await.pool_version, 2);
+    assert_eq!(episodes(get_task(&mut ca, "t").await), 1);
+}

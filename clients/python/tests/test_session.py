@@ -316,6 +316,24 @@ def test_restart_discards_unfinished_episodes(client: tamrm.Client, task_id: str
     assert client.get_task(task_id).stats.episodes_completed == 1
 
 
+def test_episodes_ended_after_a_restart_are_stored(client: tamrm.Client, task_id: str) -> None:
+    # SPEC §9: after a restart every env starts a new episode. The session keeps its
+    # client id, so the server must number them after the ends it committed, not from 0
+    # again (where they would be taken for re-sends of the first ones and dropped).
+    client.create_task(task_id, num_actions=2, pool_capacity=10)
+    with client.session(task_id, 2) as s:
+        for score in (1.0, 2.0):
+            s.step([0, 1], [score, score], terminated=[True, True])
+        assert client.get_task(task_id).stats.pool_size == 4
+        for round_ in range(2):
+            s.restart()
+            s.step([1, 0], [5.0 + round_, 6.0 + round_], terminated=[True, True])
+    stats = client.get_task(task_id).stats
+    assert (stats.pool_size, stats.episodes_completed) == (8, 8)
+    scores = sorted(t.score for t in client.get_pool(task_id).trajectories)
+    assert scores == [1.0, 1.0, 2.0, 2.0, 5.0, 6.0, 6.0, 7.0]
+
+
 def _wait_for(predicate, timeout: float = 5.0) -> bool:  # type: ignore[no-untyped-def]
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -290,3 +290,100 @@ async fn an_invalid_resume_opens_nothing_and_names_the_field() {
     }
     assert_eq!(t.stats().open_streams, 0);
 }
+
+/// `client-1`'s session on task "t" of `r` with `num_envs` envs, listing `resume`.
+async fn client_1_listing(r: &Registry, num_envs: u32, resume: &[Resume<'_>]) -> StreamSession {
+    let req = OpenRequest {
+        tenant: DEFAULT_TENANT,
+        task_id: "t",
+        num_envs,
+        resume,
+        client_id: "client-1",
+    };
+    StreamSession::open(r, &req).await.unwrap()
+}
+
+/// An end of env `env` (of 2): its only entry in the batch.
+fn end_of<'a>(env: u32, action: &'static [u32], reward: &'a [f64]) -> Batch<'a> {
+    Batch {
+        env_ids: if env == 0 { &[0] } else { &[1] },
+        actions: action,
+        rewards: reward,
+        terminated: &[true],
+        ..Default::default()
+    }
+}
+
+#[tokio::test]
+async fn an_env_not_listed_starts_the_episode_after_its_last_committed_end() {
+    // SPEC §9: "Environments not listed start new episodes." Numbered from 0 again, a new
+    // episode of an env that already ended some under this client id would be taken for
+    // a re-send of an old one and dropped.
+    let (r, t, _) = setup(10, 2).await;
+    let mut s = client_1_listing(&r, 2, &[]).await;
+    s.step(&end_of(1, &[1], &[1.0])).await.unwrap();
+    s.step(&end_of(1, &[0], &[2.0])).await.unwrap();
+    s.step(&one(&[1], &[1.0], false)).await.unwrap(); // env 0, mid-episode
+    assert_eq!(t.stats().pool_version, 2);
+    drop(s);
+    // Resumed listing only the env in the middle of an episode.
+    let mid = [Resume {
+        env_id: 0,
+        actions: &[1],
+        reward_sum: 1.0,
+        ..Default::default()
+    }];
+    for (i, listed) in [&mid[..], &[]].into_iter().enumerate() {
+        let mut s = client_1_listing(&r, 2, listed).await;
+        let out = s.step(&end_of(1, &[1], &[3.0 + i as f64])).await.unwrap();
+        assert_eq!(
+            out.pool_version,
+            3 + i as u64,
+            "open {i}: a new episode, stored"
+        );
+        assert_eq!(t.stats().episodes_completed, 3 + i as u64);
+    }
+    // A re-send of env 1's last end, listed with its number (3), is still not committed.
+    let last = [Resume {
+        env_id: 1,
+        episode: 3,
+        ..Default::default()
+    }];
+    let mut s = client_1_listing(&r, 2, &last).await;
+    assert_eq!(
+        s.step(&end_of(1, &[1], &[4.0])).await.unwrap().pool_version,
+        4
+    );
+    assert_eq!(t.stats().episodes_completed, 4);
+}
+
+#[tokio::test]
+async fn a_restarted_data_dir_server_knows_the_record_without_a_resume_list() {
+    // The record of committed ends is read back at every open with a client id, not only
+    // at a resume: numbering an env not listed needs it as much as checking a re-send.
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let (r, _store) = on_disk(dir.path()).await;
+        let t = task(&r, "t", 10).await;
+        let mut s = client_1(&r, None).await;
+        s.step(&one(&[1], &[1.0], true)).await.unwrap();
+        assert_eq!(t.stats().pool_version, 1);
+    } // kill -9
+    let (r, _store) = on_disk(dir.path()).await;
+    let t = r.get(DEFAULT_TENANT, "t").unwrap();
+    // Env 0 not listed: its next end is episode 1, a new one.
+    let mut s = client_1(&r, None).await;
+    assert_eq!(
+        s.step(&one(&[0], &[2.0], true)).await.unwrap().pool_version,
+        2
+    );
+    drop(s);
+    // Re-sent with its number, episode 1 is recognised (numbered 0 after the restart, it
+    // would have been recorded as episode 0 and this re-send committed again).
+    let mut s = client_1(&r, Some((&[], 1))).await;
+    assert_eq!(
+        s.step(&one(&[0], &[2.0], true)).await.unwrap().pool_version,
+        2
+    );
+    assert_eq!((t.snapshot().len(), t.stats().episodes_completed), (2, 2));
+}

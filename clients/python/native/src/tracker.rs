@@ -140,11 +140,13 @@ impl Tracker {
         self.unconfirmed.iter_mut().for_each(|u| *u = false);
     }
 
-    /// `Open.resume`: every env with an episode in progress, or with ended episodes (so
-    /// that the server goes on numbering them).
+    /// `Open.resume`: every env, with its episode in progress (none at t = 0) and its
+    /// episode counter. Even an env at t = 0 with no ended episode is listed: the server
+    /// numbers an env not listed after the last end it committed for it, so an env whose
+    /// first episode ended in the batch being re-sent would otherwise get a new number
+    /// and be committed twice.
     pub fn resume(&self) -> Vec<proto::EnvResume> {
         (0..self.num_envs())
-            .filter(|&e| self.steps[e] > 0 || self.ended[e] > 0)
             .map(|e| proto::EnvResume {
                 env_id: e as u32,
                 actions: self.actions[e].clone(),
