@@ -114,15 +114,25 @@ impl Registry {
             .map_err(|e| Error::invalid(format!("config.{}", e.field), e.message))?;
         let key = task_key(tenant, id);
         let _admin = self.admin.lock().await;
-        if let Some(existing) = self.tasks.get(&key).filter(|t| t.check_live().is_ok()) {
-            return if existing.config().same_as(&config) {
-                Ok(existing.clone())
-            } else {
-                Err(Error::AlreadyExists {
-                    id: id.to_string(),
-                    detail: existing.config().diff(&config, input).join("; "),
-                })
-            };
+        let held = self.tasks.get(&key).map(|t| t.clone());
+        if let Some(existing) = held.filter(|t| t.check_live().is_ok()) {
+            // A store shared with other servers decides: another server may have deleted
+            // the task before its notification came (the check marks it deleted here);
+            // a store that cannot be reached leaves this server's answer.
+            let gone = matches!(
+                existing.sync_counters().await,
+                Err(Error::TaskNotFound { .. })
+            );
+            if !gone {
+                return if existing.config().same_as(&config) {
+                    Ok(existing)
+                } else {
+                    Err(Error::AlreadyExists {
+                        id: id.to_string(),
+                        detail: existing.config().diff(&config, input).join("; "),
+                    })
+                };
+            }
         }
         if config.pool_capacity > self.limits.max_pool_capacity {
             return Err(Error::ResourceExhausted(format!(

@@ -836,12 +836,22 @@ impl Store for RedisStore {
         if self.delta(id, counters) != Counters::default() {
             self.run_commit(id, &[], counters).await?;
         }
-        let (episodes, steps): (Option<u64>, Option<u64>) = self
+        let (incarnation, episodes, steps): (Option<String>, Option<u64>, Option<u64>) = self
             .conn
             .clone()
-            .hmget(Keys::of(id).meta, &["episodes_completed", "steps_shaped"])
+            .hmget(
+                Keys::of(id).meta,
+                &["incarnation", "episodes_completed", "steps_shaped"],
+            )
             .await
             .map_err(|e| self.fail("reading the counters", e))?;
+        // Deleted (or deleted and created again) on another server, and the notification
+        // not here yet: gone, not a task with no counters (SPEC §10).
+        if incarnation.as_deref() != Some(self.incarnation(id)?.as_str()) {
+            return Err(StoreError::Gone {
+                task: id.to_string(),
+            });
+        }
         let totals = Counters {
             episodes_completed: episodes.unwrap_or(0),
             steps_shaped: steps.unwrap_or(0),

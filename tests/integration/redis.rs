@@ -254,6 +254,42 @@ async fn created_on_one_usable_on_another(url: &str) {
     assert_eq!(get_task(&mut ca, "t").await.config.unwrap().num_actions, 5);
 }
 
+/// SPEC §10: `GetTask` and `CreateTask` on a replica that holds a task another server
+/// deleted (or deleted and created again) answer the store's state, not the replica's
+/// copy, even before it hears of the deletion. The deletion is made behind the replicas'
+/// backs (no notification; the 200 ms poll is the only other way they learn of it).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_task_deleted_elsewhere_is_gone_at_once_for_get_task_and_create_task() {
+    let redis = RedisServer::start();
+    let (a, b) = (replica(&redis.url()).await, replica(&redis.url()).await);
+    let (mut ca, mut cb) = (connect(a.addr()).await, connect(b.addr()).await);
+    let delete_unannounced = || {
+        let keys = ["tamrm:{t}:meta", "tamrm:{t}:traj", "tamrm:{t}:scores"];
+        assert_eq!(redis.cli(&[&["DEL"][..], &keys].concat()).trim(), "1");
+        redis.cli(&["SREM", "tamrm:tasks", "t"]);
+    };
+    for round in 0..3 {
+        create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
+        assert_eq!(get_task(&mut cb, "t").await.config.unwrap().num_actions, 3);
+        delete_unannounced();
+        let err = cb
+            .get_task(proto::GetTaskRequest {
+                task_id: "t".into(),
+            })
+            .await
+            .unwrap_err();
+        assert_eq!(err.code(), Code::NotFound, "round {round}: {err:?}");
+        // Created again with another config: B answers the new task.
+        create(&mut ca, "t", discrete(3, 3, 2, 1, 2)).await;
+        assert_eq!(get_task(&mut cb, "t").await.config.unwrap().num_actions, 3);
+        delete_unannounced();
+        create(&mut ca, "t", discrete(4, 3, 2, 1, 2)).await;
+        let task = get_task(&mut cb, "t").await;
+        assert_eq!(task.config.unwrap().num_actions, 4, "round {round}");
+        delete_unannounced();
+    }
+}
+
 /// Each env's current episode, as a resuming client keeps it.
 #[derive(Clone, Default)]
 struct Episodes {
