@@ -45,10 +45,10 @@ fn main() -> std::process::ExitCode {
             Ok(s) => s,
             Err(e) => {
                 tracing::error!("{e}");
-                // A bad TLS file is a settings error, like the others: exit 2.
-                return match e {
-                    tamrm::server::StartError::Tls(_) => std::process::ExitCode::from(2),
-                    _ => std::process::ExitCode::FAILURE,
+                return if e.is_settings_error() {
+                    std::process::ExitCode::from(2)
+                } else {
+                    std::process::ExitCode::FAILURE
                 };
             }
         };

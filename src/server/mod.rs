@@ -51,6 +51,14 @@ pub enum StartError {
     Tls(#[from] tls::TlsError),
 }
 
+impl StartError {
+    /// Whether a setting is at fault (a TLS or API key file it names): the binary exits
+    /// with 2 for these, as for every other settings error (docs/configuration.md).
+    pub fn is_settings_error(&self) -> bool {
+        matches!(self, Self::Tls(_) | Self::ApiKeys(_))
+    }
+}
+
 /// A running server.
 pub struct RunningServer {
     addr: SocketAddr,

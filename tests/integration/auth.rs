@@ -473,6 +473,22 @@ async fn data_from_before_tenants_is_the_default_tenants() {
     server.shutdown().await;
 }
 
+/// A key file that is missing or invalid is a settings error: exit 2, naming the file
+/// (docs/configuration.md), as for a bad TLS file.
+#[test]
+fn a_bad_key_file_stops_the_start_with_exit_2_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.toml");
+    let garbage = dir.path().join("garbage.toml");
+    std::fs::write(&garbage, "keys = [[[\n").unwrap();
+    for file in [&missing, &garbage] {
+        let path = file.to_str().unwrap();
+        let (code, err) = crate::tls::serve_fails(&["--api-keys", path]);
+        assert_eq!(code, Some(2), "{path}: {err}");
+        assert!(err.contains(path), "the error does not name {path}: {err}");
+    }
+}
+
 /// The real binary reads its key file again on SIGHUP: a removed key stops working, a
 /// new one works, and a stream opened before keeps going.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -283,7 +283,7 @@ async fn healthcheck_speaks_tls_with_the_servers_certificate_file_as_ca() {
 }
 
 /// `tamrm serve` with `args`: it must exit by itself within 20 s; (exit code, stderr).
-fn serve_fails(args: &[&str]) -> (Option<i32>, String) {
+pub(crate) fn serve_fails(args: &[&str]) -> (Option<i32>, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_tamrm"))
         .args(["serve", "--listen", "127.0.0.1:0"])
         .args(args)
