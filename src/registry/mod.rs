@@ -117,10 +117,9 @@ impl Registry {
         let held = self.tasks.get(&key).map(|t| t.clone());
         if let Some(existing) = held.filter(|t| t.check_live().is_ok()) {
             // A store shared with other servers decides: another server may have deleted
-            // the task before its notification came (the check marks it deleted here);
-            // a store that cannot be reached leaves this server's answer.
+            // the task before its notification came.
             let gone = matches!(
-                existing.sync_counters().await,
+                existing.check_with_store().await,
                 Err(Error::TaskNotFound { .. })
             );
             if !gone {

@@ -335,6 +335,20 @@ impl TaskHandle {
             .await
     }
 
+    /// [`TaskHandle::sync_counters`] before an answer about the task: fails only when the
+    /// store no longer has it (`TaskNotFound`: another server deleted it, and it is marked
+    /// deleted here); a store that cannot be reached leaves this server's counters.
+    pub async fn check_with_store(&self) -> Result<(), Error> {
+        match self.sync_counters().await {
+            Err(e @ Error::TaskNotFound { .. }) => Err(e),
+            Err(e) => {
+                tracing::warn!(task = %self.key(), error = %e, "could not sync the task's counters; answering this server's");
+                Ok(())
+            }
+            Ok(()) => Ok(()),
+        }
+    }
+
     /// On a store shared with other servers: writes this server's counter increments and
     /// takes in the other servers' (as of their last write), so that every replica
     /// reports the task's totals (SPEC §10). Nothing for other stores.

@@ -138,11 +138,12 @@ impl Shaping for ShapingService {
     ) -> Result<Response<proto::Task>, Status> {
         let id = &request.get_ref().task_id;
         let mut task = self.task(&request, id).await?;
-        if let Err(Error::TaskNotFound { .. }) = synced_counters(&task).await {
+        // On a shared store, the counters over every replica (SPEC §10).
+        if let Err(Error::TaskNotFound { .. }) = task.check_with_store().await {
             // Deleted by another server since this one loaded it, before the notification
             // came: gone, or created again there (SPEC §10), which the store answers.
             task = self.task(&request, id).await?;
-            synced_counters(&task).await?;
+            task.check_with_store().await?;
         }
         Ok(Response::new(task_proto(&task)))
     }
@@ -218,20 +219,6 @@ impl Shaping for ShapingService {
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<Self::ShapeStream>, Status> {
         self.open_shape(request)
-    }
-}
-
-/// On a shared store, takes the counters over every replica into `task` (SPEC §10); if
-/// the store cannot be reached, `task` keeps this server's. Fails only for a task the
-/// store no longer has (`NOT_FOUND`).
-async fn synced_counters(task: &TaskHandle) -> Result<(), Error> {
-    match task.sync_counters().await {
-        Err(e @ Error::TaskNotFound { .. }) => Err(e),
-        Err(e) => {
-            tracing::warn!(task = %task.key(), error = %e, "could not sync the task's counters; answering this server's");
-            Ok(())
-        }
-        Ok(()) => Ok(()),
     }
 }
 
