@@ -345,6 +345,17 @@ fn redact(url: &str) -> String {
     }
 }
 
+/// The COMMIT script's answer (see [`RedisStore::run_commit`]).
+struct CommitAnswer {
+    before: u64,
+    after: u64,
+    seq_before: u64,
+    /// Per offer: 1 stored, 0 not stored, 2 a re-sent end.
+    decided: Vec<u64>,
+    /// The offers that were re-sent ends (2 in `decided`).
+    resent: usize,
+}
+
 impl RedisStore {
     /// Connects (failing if Redis does not answer) and starts following changes.
     pub async fn open(options: &RedisOptions) -> Result<RedisStore, StoreError> {
@@ -442,13 +453,15 @@ impl RedisStore {
         }
     }
 
-    /// Runs the commit script; `None` if the task is gone.
+    /// Runs the COMMIT script: the task's pool version before and after, its next seq
+    /// before, and per offer 1 (stored), 0 (not stored) or 2 (a re-sent end, not counted).
+    /// `Gone` if the task (this incarnation of it) is not in Redis.
     async fn run_commit(
         &self,
         task: &str,
         ops: &[PoolOp],
         counters: Counters,
-    ) -> Result<Vec<u64>, StoreError> {
+    ) -> Result<CommitAnswer, StoreError> {
         let incarnation = self.incarnation(task)?;
         let keys = Keys::of(task);
         let client = ops.iter().find_map(|op| match op {
@@ -503,25 +516,33 @@ impl RedisStore {
             .invoke_async(&mut self.conn.clone())
             .await
             .map_err(|e| self.fail("committing", e))?;
-        if out.first() != Some(&1) {
-            self.held.remove(task);
-            return Err(StoreError::Gone {
-                task: task.to_string(),
-            });
-        }
+        let answer = match out.as_slice() {
+            [1, before, after, seq_before, decided @ ..] => CommitAnswer {
+                before: *before,
+                after: *after,
+                seq_before: *seq_before,
+                resent: decided.iter().filter(|&&c| c == 2).count(),
+                decided: decided.to_vec(),
+            },
+            _ => {
+                self.held.remove(task);
+                return Err(StoreError::Gone {
+                    task: task.to_string(),
+                });
+            }
+        };
         // The script did not count the re-sent ends; the handle takes them back from its
         // own count too (`TaskHandle::commit_ends`), so the next increment stays exact.
-        let resent = out
-            .get(4..)
-            .map_or(0, |d| d.iter().filter(|&&c| c == 2).count());
         self.wrote(
             task,
             Counters {
-                episodes_completed: counters.episodes_completed.saturating_sub(resent as u64),
+                episodes_completed: counters
+                    .episodes_completed
+                    .saturating_sub(answer.resent as u64),
                 ..counters
             },
         );
-        Ok(out)
+        Ok(answer)
     }
 
     /// Reads a task's meta and trajectories in one atomic round trip: the task and its
@@ -748,11 +769,15 @@ impl Store for RedisStore {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
-        let out = self.run_commit(id, &ops, counters).await?;
-        let (before, after, seq_before) = (out[1], out[2], out[3]);
-        let decided: Vec<u64> = out[4..].to_vec();
+        let CommitAnswer {
+            before,
+            after,
+            seq_before,
+            decided,
+            resent,
+        } = self.run_commit(id, &ops, counters).await?;
         let changed: Vec<bool> = decided.iter().map(|&c| c == 1).collect();
-        if before == base.version() && seq_before == base.next_seq() && !decided.contains(&2) {
+        if before == base.version() && seq_before == base.next_seq() && resent == 0 {
             // Nobody changed the pool since `base`: the same rule gives the same pool here.
             let (pool, local) = apply_ops(&base, ops);
             if pool.version() == after && local == changed {
@@ -771,7 +796,7 @@ impl Store for RedisStore {
             pool: Arc::new(pool),
             changed,
             version: after,
-            resent: decided.iter().filter(|&&c| c == 2).count(),
+            resent,
         })
     }
 
