@@ -58,6 +58,18 @@ limits! {
     max_message_bytes: usize = 64 * 1024 * 1024, env "TAMRM_MAX_MESSAGE_BYTES";
     /// `pool_capacity` a task may ask for at most [default: 10000].
     max_pool_capacity: u32 = 10_000, env "TAMRM_MAX_POOL_CAPACITY";
+    /// Bytes of actions one task's pool may hold at most, `pool_capacity ×
+    /// max_trajectory_len × 4 × max(1, action_dim)`: CreateTask refuses a config past it
+    /// [default: 4294967296].
+    max_pool_bytes: u64 = 4 << 30, env "TAMRM_MAX_POOL_BYTES";
+    /// Bytes one Shape stream may hold at most, `num_envs × (max_trajectory_len × 4 ×
+    /// max(1, action_dim) + pool_capacity × 24)`: Open refuses a stream past it
+    /// [default: 4294967296].
+    max_stream_bytes: u64 = 4 << 30, env "TAMRM_MAX_STREAM_BYTES";
+    /// Bytes every open Shape stream together may hold at most (the sum of their
+    /// max_stream_bytes reckonings): Open refuses a stream that would pass it
+    /// [default: 17179869184].
+    max_total_stream_bytes: u64 = 16 << 30, env "TAMRM_MAX_TOTAL_STREAM_BYTES";
     /// Seconds a Shape stream may go without a client message (before its `Open`
     /// included) before the server ends it with UNAVAILABLE; 0 never [default: 600].
     stream_idle_timeout_secs: u64 = 600, env "TAMRM_STREAM_IDLE_TIMEOUT_SECS";

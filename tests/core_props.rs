@@ -1269,3 +1269,15 @@ fn an_overflowing_reward_sum_never_poisons_the_pool() {
         "{out:?}"
     );
 }
+
+#[test]
+fn a_resumed_episode_owes_one_sync_of_its_recorded_prefix() {
+    let cfg = dcfg(2, 2, 1, 0, 1);
+    let pool = pool_of(2, &[(&[0, 1, 0], 1.0)]);
+    assert_eq!(Episode::new(cfg.action_space).pending_sync_len(), 0);
+    // Only max_trajectory_len (3) of the 5 actions are recorded, and so compared.
+    let mut ep = Episode::resume(ActionSeq::Discrete(vec![1, 1, 0, 1, 1]), 0.0, 3);
+    assert_eq!(ep.pending_sync_len(), 3);
+    step(&mut ep, &cfg, &pool, 0);
+    assert_eq!(ep.pending_sync_len(), 0);
+}

@@ -214,7 +214,35 @@ fn bad(field: &'static str, message: impl Into<String>) -> ConfigError {
     }
 }
 
+/// Bytes one environment's episode state keeps per pool trajectory at most (its seq, its
+/// distance or mismatch count, and the spare buffer a re-sync reuses).
+pub const ENV_BYTES_PER_TRAJECTORY: u64 = 24;
+
+impl ActionSpace {
+    /// Bytes one recorded action takes: 4 for a discrete action, 4 per component of a
+    /// continuous one.
+    pub fn action_bytes(&self) -> u64 {
+        4 * (self.action_dim().max(1) as u64)
+    }
+}
+
 impl TaskConfig {
+    /// The most bytes of actions the task's pool can hold: `pool_capacity` trajectories of
+    /// `max_trajectory_len` actions (what the server limit `max_pool_bytes` bounds).
+    pub fn pool_bytes_bound(&self) -> u64 {
+        u64::from(self.pool_capacity)
+            .saturating_mul(u64::from(self.max_trajectory_len))
+            .saturating_mul(self.action_space.action_bytes())
+    }
+
+    /// The most bytes one environment of a Shape stream can hold: its episode's recorded
+    /// actions (`max_trajectory_len` at most) and its state per pool trajectory.
+    pub fn env_bytes_bound(&self) -> u64 {
+        u64::from(self.max_trajectory_len)
+            .saturating_mul(self.action_space.action_bytes())
+            .saturating_add(u64::from(self.pool_capacity) * ENV_BYTES_PER_TRAJECTORY)
+    }
+
     /// Checks a resolved configuration read back from storage against every range of
     /// SPEC §1.1, as [`TaskConfig::resolve`] checks a client's: stored data is never
     /// trusted to satisfy what the engine relies on (e.g. `k >= 1`).

@@ -147,6 +147,17 @@ impl Episode {
         self.t
     }
 
+    /// Recorded actions that the first sync with a pool compares with every trajectory
+    /// (a resumed episode's prefix); 0 once synced. The next step's work grows with this
+    /// times the pool's size.
+    pub fn pending_sync_len(&self) -> usize {
+        if self.synced_version.is_none() {
+            self.recorded.len()
+        } else {
+            0
+        }
+    }
+
     /// Brings `dis` (or `ms`) in line with the pool's current contents.
     fn sync(&mut self, pool: &Pool) {
         if self.synced_version == Some(pool.version()) {

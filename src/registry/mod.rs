@@ -12,6 +12,7 @@
 
 mod task;
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use dashmap::DashMap;
@@ -55,6 +56,21 @@ pub struct Registry {
     admin: Mutex<()>,
     store: Arc<dyn Store>,
     limits: Limits,
+    /// Bytes reserved by the open Shape streams (bounded by `max_total_stream_bytes`).
+    stream_bytes: Arc<AtomicU64>,
+}
+
+/// Memory reserved for one open stream out of the server's budget; released when dropped.
+#[derive(Debug)]
+pub struct StreamBytes {
+    reserved: Arc<AtomicU64>,
+    bytes: u64,
+}
+
+impl Drop for StreamBytes {
+    fn drop(&mut self) {
+        self.reserved.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
 }
 
 /// What [`Registry::open`] restored.
@@ -86,6 +102,7 @@ impl Registry {
                 admin: Mutex::new(()),
                 store,
                 limits,
+                stream_bytes: Arc::default(),
             },
             restored,
         ))
@@ -94,6 +111,32 @@ impl Registry {
     /// The server limits.
     pub fn limits(&self) -> &Limits {
         &self.limits
+    }
+
+    /// Reserves `bytes` (a stream's reckoning, see `max_stream_bytes`) out of the
+    /// server's budget for open streams, `max_total_stream_bytes`; the reservation ends
+    /// when the returned value is dropped.
+    pub fn reserve_stream_bytes(&self, bytes: u64) -> Result<StreamBytes, Error> {
+        let max = self.limits.max_total_stream_bytes;
+        self.stream_bytes
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |held| {
+                held.checked_add(bytes).filter(|&total| total <= max)
+            })
+            .map_err(|held| {
+                Error::ResourceExhausted(format!(
+                    "open: this stream reckons {bytes} bytes and the open streams hold \
+                     {held}: past this server's limit max_total_stream_bytes = {max}"
+                ))
+            })?;
+        Ok(StreamBytes {
+            reserved: self.stream_bytes.clone(),
+            bytes,
+        })
+    }
+
+    /// Bytes the open streams have reserved (see [`Registry::reserve_stream_bytes`]).
+    pub fn reserved_stream_bytes(&self) -> u64 {
+        self.stream_bytes.load(Ordering::Relaxed)
     }
 
     /// The store's one-line description, for the start-up log.
@@ -137,6 +180,18 @@ impl Registry {
             return Err(Error::ResourceExhausted(format!(
                 "config.pool_capacity: {} exceeds this server's limit max_pool_capacity = {}",
                 config.pool_capacity, self.limits.max_pool_capacity
+            )));
+        }
+        let bytes = config.pool_bytes_bound();
+        if bytes > self.limits.max_pool_bytes {
+            return Err(Error::ResourceExhausted(format!(
+                "config: a pool of pool_capacity {} trajectories of max_trajectory_len {} \
+                 actions of {} bytes holds up to {bytes} bytes, past this server's limit \
+                 max_pool_bytes = {}; lower pool_capacity or max_trajectory_len",
+                config.pool_capacity,
+                config.max_trajectory_len,
+                config.action_space.action_bytes(),
+                self.limits.max_pool_bytes
             )));
         }
         if self.tasks.len() >= self.limits.max_tasks {

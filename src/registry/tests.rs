@@ -66,6 +66,47 @@ async fn create_is_idempotent_and_names_what_differs() {
 }
 
 #[tokio::test]
+async fn max_pool_bytes_bounds_capacity_times_length_times_action_bytes() {
+    // 4 trajectories × 10 actions × 4 bytes = 160 bytes (discrete); × 3 for action_dim 3.
+    let r = registry(Limits {
+        max_pool_bytes: 160,
+        ..Limits::default()
+    })
+    .await;
+    let config = |capacity, len, dim| TaskConfigInput {
+        num_actions: if dim == 0 { 2 } else { 0 },
+        action_dim: dim,
+        pool_capacity: Some(capacity),
+        max_trajectory_len: Some(len),
+        ..Default::default()
+    };
+    r.create(DEFAULT_TENANT, "at", &config(4, 10, 0), None)
+        .await
+        .unwrap();
+    r.create(DEFAULT_TENANT, "one-dim", &config(4, 10, 1), None)
+        .await
+        .unwrap();
+    for (id, input) in [
+        ("capacity", config(5, 10, 0)),
+        ("length", config(4, 11, 0)),
+        ("dim", config(4, 10, 3)),
+        // The default max_trajectory_len (100000) is counted too.
+        ("default-length", discrete(2, 1)),
+    ] {
+        match r.create(DEFAULT_TENANT, id, &input, None).await {
+            Err(Error::ResourceExhausted(m)) => {
+                assert!(m.contains("max_pool_bytes = 160"), "{id}: {m}");
+                let bytes = TaskConfig::resolve(&input).unwrap().pool_bytes_bound();
+                assert!(m.contains(&format!("up to {bytes} bytes")), "{id}: {m}");
+            }
+            Err(other) => panic!("{id}: {other:?}"),
+            Ok(_) => panic!("{id}: created past max_pool_bytes"),
+        }
+    }
+    assert_eq!(r.list(DEFAULT_TENANT).await.unwrap().len(), 2);
+}
+
+#[tokio::test]
 async fn limits_are_resource_exhausted_and_change_nothing() {
     let r = registry(Limits {
         max_tasks: 1,

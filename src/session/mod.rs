@@ -23,7 +23,7 @@ pub use batch::{Batch, Entries};
 use crate::core::{ActionCount, Episode, KnnScratch, Pool, StepInput, StepOutput};
 use crate::error::Error;
 use crate::limits::Limits;
-use crate::registry::{Registry, StreamGuard, TaskHandle, Writer, DEFAULT_TENANT};
+use crate::registry::{Registry, StreamBytes, StreamGuard, TaskHandle, Writer, DEFAULT_TENANT};
 use crate::store::{EndMark, PoolOp};
 
 /// Entries × pool capacity above which shaping a batch counts as long CPU work (about a
@@ -90,6 +90,7 @@ pub struct Shaped<'s> {
 pub struct StreamSession {
     task: Arc<TaskHandle>,
     _guard: StreamGuard,
+    _memory: StreamBytes,
     limits: Limits,
     episodes: Vec<Episode>,
     /// Per env: the number of the current episode (episodes ended before it).
@@ -157,6 +158,23 @@ impl StreamSession {
         }
         let task = registry.lookup(req.tenant, req.task_id).await?;
         let config = *task.config();
+        let bytes = config
+            .env_bytes_bound()
+            .saturating_mul(u64::from(req.num_envs));
+        let max = registry.limits().max_stream_bytes;
+        if bytes > max {
+            return Err(Error::ResourceExhausted(format!(
+                "open: {} envs of up to {} bytes each (max_trajectory_len {} actions of {} \
+                 bytes, pool_capacity {}) hold up to {bytes} bytes, past this server's limit \
+                 max_stream_bytes = {max}; open fewer envs per stream",
+                req.num_envs,
+                config.env_bytes_bound(),
+                config.max_trajectory_len,
+                config.action_space.action_bytes(),
+                config.pool_capacity
+            )));
+        }
+        let memory = registry.reserve_stream_bytes(bytes)?;
         let mut episodes: Vec<Episode> = (0..req.num_envs)
             .map(|_| Episode::new(config.action_space))
             .collect();
@@ -216,6 +234,7 @@ impl StreamSession {
             client_id: (!req.client_id.is_empty()).then(|| Arc::from(req.client_id)),
             task,
             _guard: guard,
+            _memory: memory,
             limits: *registry.limits(),
             scratch: KnnScratch::default(),
             outputs: Vec::new(),
@@ -256,7 +275,16 @@ impl StreamSession {
         self.task.check_live()?;
         self.drop_episodes(batch.abandon);
         self.outputs.clear();
-        let long = entries.len().saturating_mul(config.pool_capacity as usize) > HEAVY_BATCH_WORK;
+        // A resumed episode's first step compares its whole prefix with the pool.
+        let resync = entries
+            .iter()
+            .map(|(env, _)| self.episodes[*env].pending_sync_len())
+            .fold(0, usize::saturating_add);
+        let long = entries
+            .len()
+            .saturating_add(resync)
+            .saturating_mul(config.pool_capacity as usize)
+            > HEAVY_BATCH_WORK;
 
         let mut pool = self.task.snapshot();
         let mut writer: Option<Writer> = None;

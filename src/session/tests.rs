@@ -301,3 +301,52 @@ mod resume;
 
 /// Arbitrary, mostly invalid batches.
 mod props;
+
+#[tokio::test]
+async fn stream_memory_is_bounded_per_stream_and_server_wide_and_released_on_drop() {
+    // One env of a task with max_trajectory_len 10 and pool_capacity 2 reckons
+    // 10 × 4 + 2 × 24 = 88 bytes.
+    let r = registry_with(
+        Arc::new(MemoryStore::new()),
+        Limits {
+            max_stream_bytes: 3 * 88,
+            max_total_stream_bytes: 5 * 88,
+            ..Limits::default()
+        },
+    )
+    .await;
+    let t = r
+        .create(
+            DEFAULT_TENANT,
+            "t",
+            &TaskConfigInput {
+                num_actions: 2,
+                pool_capacity: Some(2),
+                max_trajectory_len: Some(10),
+                ..Default::default()
+            },
+            None,
+        )
+        .await
+        .unwrap();
+    assert_eq!(t.config().env_bytes_bound(), 88);
+    let exhausted = |res: Result<StreamSession, Error>, limit: &str| match res {
+        Err(Error::ResourceExhausted(m)) => assert!(m.contains(limit), "{m}"),
+        Err(other) => panic!("{other:?}"),
+        Ok(_) => panic!("opened past {limit}"),
+    };
+    exhausted(open(&r, "t", 4).await, "max_stream_bytes = 264");
+    assert_eq!(r.reserved_stream_bytes(), 0);
+    let three = open(&r, "t", 3).await.unwrap();
+    let two = open(&r, "t", 2).await.unwrap();
+    assert_eq!(r.reserved_stream_bytes(), 5 * 88);
+    exhausted(open(&r, "t", 1).await, "max_total_stream_bytes = 440");
+    // A refused open holds nothing.
+    assert_eq!(t.stats().open_streams, 2);
+    assert_eq!(r.reserved_stream_bytes(), 5 * 88);
+    drop(three);
+    assert_eq!(r.reserved_stream_bytes(), 2 * 88);
+    let again = open(&r, "t", 3).await.unwrap();
+    drop((two, again));
+    assert_eq!(r.reserved_stream_bytes(), 0);
+}

@@ -1653,3 +1653,81 @@ async fn shape_answer_over_max_message_bytes_is_refused_before_applying() {
     assert_serving(server.addr()).await;
     server.shutdown().await;
 }
+
+/// The memory limits: a pool's reckoned bytes at CreateTask, a stream's at Open, and every
+/// open stream's together, which a closed stream gives back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn memory_limits_refuse_a_pool_or_stream_past_them_and_a_closed_stream_frees_its_share() {
+    // One env of a task with max_trajectory_len 10 and pool_capacity 2 reckons
+    // 10 × 4 + 2 × 24 = 88 bytes; its pool 2 × 10 × 4 = 80.
+    let server = start_server(None, |s| {
+        s.limits.max_pool_bytes = 80;
+        s.limits.max_stream_bytes = 3 * 88;
+        s.limits.max_total_stream_bytes = 5 * 88;
+    })
+    .await;
+    let mut c = connect(server.addr()).await;
+    let small = |capacity: u32| TaskConfig {
+        max_trajectory_len: Some(10),
+        ..discrete(2, capacity, 1, 0, 1)
+    };
+    let r = c
+        .create_task(CreateTaskRequest {
+            task_id: "big".into(),
+            config: Some(small(3)),
+        })
+        .await;
+    expect_status(
+        "pool past max_pool_bytes",
+        r,
+        Code::ResourceExhausted,
+        "max_pool_bytes = 80",
+    );
+    assert!(c
+        .list_tasks(ListTasksRequest {})
+        .await
+        .unwrap()
+        .into_inner()
+        .tasks
+        .is_empty());
+    create(&mut c, "t", small(2)).await;
+
+    let refused = |r: Result<(Stream, proto::Task), Status>, limit: &str| match r {
+        Ok(_) => panic!("opened past {limit}"),
+        Err(s) => {
+            assert_eq!(s.code(), Code::ResourceExhausted, "{limit}: {s:?}");
+            assert!(s.message().contains(limit), "{limit}: {s:?}");
+        }
+    };
+    refused(Stream::open(&mut c, "t", 4).await, "max_stream_bytes = 264");
+    let (mut three, _) = Stream::open(&mut c, "t", 3).await.unwrap();
+    let (two, _) = Stream::open(&mut c, "t", 2).await.unwrap();
+    refused(
+        Stream::open(&mut c, "t", 1).await,
+        "max_total_stream_bytes = 440",
+    );
+    wait_open_streams(&mut c, "t", 2).await;
+    // The open streams still shape.
+    three
+        .step(batch(&[0, 1, 0], &[0.0; 3], &[false; 3]))
+        .await
+        .unwrap();
+    // Closing a stream gives its share back: a 3-env stream fits again.
+    drop(three);
+    wait_open_streams(&mut c, "t", 1).await;
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    let again = loop {
+        match Stream::open(&mut c, "t", 3).await {
+            Ok((s, _)) => break s,
+            Err(e) => {
+                assert!(
+                    std::time::Instant::now() < deadline,
+                    "share not given back: {e:?}"
+                );
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+    };
+    drop((two, again));
+    server.shutdown().await;
+}
