@@ -9,36 +9,86 @@
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 
-/// How many client ids a task remembers for the no-double-commit rule at most; the
-/// oldest is forgotten first.
+/// How many client ids a task remembers for the no-double-commit rule at most; the one
+/// that committed least recently is forgotten first.
 pub const MAX_REMEMBERED_CLIENTS: usize = 65_536;
 
+/// How many (client, env) counts a task remembers at most (about 20–40 MB), whatever the
+/// clients' env counts: past it, the clients that committed least recently are forgotten
+/// (the client just recorded never is).
+pub const MAX_REMEMBERED_ENDS: usize = 1 << 20;
+
+/// One client's record and when it last committed.
+#[derive(Debug, Default, Clone)]
+struct ClientEnds {
+    /// Per env, the number of episodes whose end was committed.
+    envs: HashMap<u32, u64>,
+    /// The merge that touched the client last (see `EndedEpisodes::order`).
+    stamp: u64,
+}
+
 /// Per client id: per env, the number of episodes whose end was committed. Bounded in
-/// clients ([`MAX_REMEMBERED_CLIENTS`], the oldest first out).
+/// clients ([`MAX_REMEMBERED_CLIENTS`]) and in counts ([`MAX_REMEMBERED_ENDS`]), the
+/// client that committed least recently first out.
 #[derive(Debug, Default, Clone)]
 pub struct EndedEpisodes {
-    by_client: HashMap<Arc<str>, HashMap<u32, u64>>,
-    order: VecDeque<Arc<str>>,
+    by_client: HashMap<Arc<str>, ClientEnds>,
+    /// `(stamp, client)` per merge, oldest first; an entry whose stamp is no longer the
+    /// client's is stale (the client merged again since) and skipped.
+    order: VecDeque<(u64, Arc<str>)>,
+    next_stamp: u64,
+    /// Σ over clients of their env counts.
+    entries: usize,
 }
 
 impl EndedEpisodes {
     /// Records that `client` ended episodes up to `count - 1` of `env`, for each
     /// `(env, count)`; a count lower than the one recorded changes nothing.
     pub fn merge(&mut self, client: &str, counts: impl IntoIterator<Item = (u32, u64)>) {
-        if !self.by_client.contains_key(client) {
-            if self.order.len() >= MAX_REMEMBERED_CLIENTS {
-                if let Some(old) = self.order.pop_front() {
-                    self.by_client.remove(&old);
-                }
-            }
-            let key: Arc<str> = Arc::from(client);
-            self.order.push_back(key.clone());
-            self.by_client.insert(key, HashMap::new());
+        let stamp = self.next_stamp;
+        self.next_stamp += 1;
+        let key: Arc<str> = match self.by_client.get_key_value(client) {
+            Some((k, _)) => k.clone(),
+            None => Arc::from(client),
+        };
+        let record = self.by_client.entry(key.clone()).or_default();
+        record.stamp = stamp;
+        for (env, count) in counts {
+            let n = record.envs.entry(env).or_insert_with(|| {
+                self.entries += 1;
+                0
+            });
+            *n = (*n).max(count);
         }
-        if let Some(envs) = self.by_client.get_mut(client) {
-            for (env, count) in counts {
-                let n = envs.entry(env).or_insert(0);
-                *n = (*n).max(count);
+        self.order.push_back((stamp, key));
+        self.forget_least_recent(stamp);
+        if self.order.len() > 2 * self.by_client.len() + 64 {
+            // Drop the stale entries, so that the queue stays within twice the clients.
+            let by_client = &self.by_client;
+            self.order
+                .retain(|(stamp, c)| by_client.get(c).is_some_and(|r| r.stamp == *stamp));
+        }
+    }
+
+    /// Forgets the clients that committed least recently while past a bound, but never
+    /// the one stamped `keep` (just recorded).
+    fn forget_least_recent(&mut self, keep: u64) {
+        while self.by_client.len() > MAX_REMEMBERED_CLIENTS || self.entries > MAX_REMEMBERED_ENDS {
+            let Some((stamp, client)) = self.order.pop_front() else {
+                return;
+            };
+            if stamp == keep {
+                self.order.push_front((stamp, client));
+                return;
+            }
+            if self
+                .by_client
+                .get(&client)
+                .is_some_and(|r| r.stamp == stamp)
+            {
+                if let Some(r) = self.by_client.remove(&client) {
+                    self.entries -= r.envs.len();
+                }
             }
         }
     }
@@ -47,7 +97,7 @@ impl EndedEpisodes {
     pub fn contains(&self, client: &str, env: u32, number: u64) -> bool {
         self.by_client
             .get(client)
-            .and_then(|envs| envs.get(&env))
+            .and_then(|r| r.envs.get(&env))
             .is_some_and(|&n| n > number)
     }
 
@@ -56,15 +106,22 @@ impl EndedEpisodes {
         let mut out: Vec<(u32, u64)> = self
             .by_client
             .get(client)
-            .map(|envs| envs.iter().map(|(&e, &n)| (e, n)).collect())
+            .map(|r| r.envs.iter().map(|(&e, &n)| (e, n)).collect())
             .unwrap_or_default();
         out.sort_unstable();
         out
     }
 
-    /// Every client's counts, oldest client first.
+    /// Every client's counts, the client that committed least recently first (merging
+    /// them in this order into an empty record rebuilds this one).
     pub fn all(&self) -> impl Iterator<Item = (&str, Vec<(u32, u64)>)> + '_ {
-        self.order.iter().map(|c| (&**c, self.counts(c)))
+        let mut clients: Vec<(u64, &str)> = self
+            .by_client
+            .iter()
+            .map(|(c, r)| (r.stamp, &**c))
+            .collect();
+        clients.sort_unstable();
+        clients.into_iter().map(|(_, c)| (c, self.counts(c)))
     }
 
     /// Whether nothing is recorded.
@@ -91,13 +148,47 @@ mod tests {
     }
 
     #[test]
-    fn the_oldest_client_is_forgotten_first() {
+    fn the_client_that_committed_least_recently_is_forgotten_first() {
         let mut t = EndedEpisodes::default();
-        for i in 0..=MAX_REMEMBERED_CLIENTS {
+        for i in 0..MAX_REMEMBERED_CLIENTS {
             t.merge(&i.to_string(), [(0, 1)]);
         }
+        // Client 0 commits again: client 1 is now the least recent.
+        t.merge("0", [(0, 2)]);
+        t.merge("new", [(0, 1)]);
+        assert!(t.contains("0", 0, 1), "a client that commits is remembered");
+        assert!(!t.contains("1", 0, 0));
+        assert!(t.contains("2", 0, 0) && t.contains("new", 0, 0));
+        assert_eq!(t.by_client.len(), MAX_REMEMBERED_CLIENTS);
+        assert!(t.order.len() <= 2 * t.by_client.len() + 64);
+        // The order survives a rebuild from `all` (a restart from ends.json).
+        let mut again = EndedEpisodes::default();
+        for (c, counts) in t.all() {
+            again.merge(c, counts);
+        }
+        again.merge("newer", [(0, 1)]);
+        assert!(!again.contains("2", 0, 0) && again.contains("3", 0, 0));
+        assert!(again.contains("0", 0, 1));
+    }
+
+    #[test]
+    fn counts_are_bounded_whatever_the_env_counts() {
+        let mut t = EndedEpisodes::default();
+        let envs = 4096;
+        let clients = MAX_REMEMBERED_ENDS / envs as usize;
+        for c in 0..clients {
+            t.merge(&c.to_string(), (0..envs).map(|e| (e, 1)));
+        }
+        assert_eq!(t.entries, MAX_REMEMBERED_ENDS);
+        assert!(t.contains("0", envs - 1, 0));
+        // One more env of a known client passes the bound: the least recent other one goes.
+        t.merge("5", [(envs, 1)]);
         assert!(!t.contains("0", 0, 0));
-        assert!(t.contains("1", 0, 0));
-        assert!(t.contains(&MAX_REMEMBERED_CLIENTS.to_string(), 0, 0));
+        assert!(t.contains("5", envs, 0) && t.contains("1", 0, 0));
+        assert_eq!(t.entries, MAX_REMEMBERED_ENDS + 1 - envs as usize);
+        // A client alone past the bound is kept (nothing else to forget).
+        let mut one = EndedEpisodes::default();
+        one.merge("big", (0..MAX_REMEMBERED_ENDS as u32 + 1).map(|e| (e, 1)));
+        assert!(one.contains("big", 0, 0));
     }
 }
