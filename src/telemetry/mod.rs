@@ -103,6 +103,7 @@ pub struct Metrics {
     commit_seconds: Histogram,
     open_streams: Gauge,
     tasks: Gauge,
+    stream_bytes: Gauge,
     labels: TaskLabels,
 }
 
@@ -137,6 +138,7 @@ impl Metrics {
             commit_seconds: Histogram::new(LATENCY_BUCKETS),
             open_streams: Gauge::default(),
             tasks: Gauge::default(),
+            stream_bytes: Gauge::default(),
             labels: TaskLabels::new(max_task_labels),
             registry: prometheus_client::registry::Registry::default(),
         };
@@ -176,6 +178,11 @@ impl Metrics {
             m.open_streams.clone(),
         );
         registry.register("tamrm_tasks", "Tasks held", m.tasks.clone());
+        registry.register(
+            "tamrm_stream_bytes_reserved",
+            "Bytes the open Shape streams reckon to hold (limit: max_total_stream_bytes)",
+            m.stream_bytes.clone(),
+        );
         Metrics { registry, ..m }
     }
 
@@ -202,11 +209,14 @@ impl Metrics {
         }
     }
 
-    /// The Prometheus text exposition (format 0.0.4) of every metric, with the task gauge
-    /// read from `tasks` now.
+    /// The Prometheus text exposition (format 0.0.4) of every metric, with the gauges of
+    /// tasks and reserved stream bytes read from `tasks` now.
     pub fn render(&self, tasks: &crate::registry::Registry) -> Result<String, std::fmt::Error> {
         let count = tasks.len();
         self.tasks.set(i64::try_from(count).unwrap_or(i64::MAX));
+        let bytes = tasks.reserved_stream_bytes();
+        self.stream_bytes
+            .set(i64::try_from(bytes).unwrap_or(i64::MAX));
         let mut text = String::new();
         prometheus_client::encoding::prometheus_text::encode(&mut text, &self.registry)?;
         Ok(text)
@@ -290,9 +300,15 @@ mod tests {
         );
         assert!(text.contains("tamrm_tasks 0\n"));
         assert!(text.contains("tamrm_open_streams 0\n"), "streams closed");
+        assert!(text.contains("tamrm_stream_bytes_reserved 0\n"), "{text}");
         let open = m.shape("task-0");
+        let reserved = registry.reserve_stream_bytes(1234).unwrap();
         let text = m.render(&registry).unwrap();
         assert!(text.contains("tamrm_open_streams 1\n"), "{text}");
-        drop(open);
+        assert!(
+            text.contains("tamrm_stream_bytes_reserved 1234\n"),
+            "{text}"
+        );
+        drop((open, reserved));
     }
 }

@@ -129,6 +129,11 @@ async fn rpcs_and_shaping_move_the_counters() {
         "an open stream is not handled yet"
     );
     assert_eq!(m.value("tamrm_open_streams", &[]), 1.0);
+    assert_eq!(
+        m.value("tamrm_stream_bytes_reserved", &[]),
+        (2 * (100_000 * 4 + 8 * 24)) as f64,
+        "2 envs of the default max_trajectory_len on a pool of 8"
+    );
     let task = [("task", "m")];
     assert_eq!(m.value("tamrm_steps_shaped_total", &task), 6.0);
     assert_eq!(m.value("tamrm_episodes_completed_total", &task), 3.0);
@@ -148,6 +153,7 @@ async fn rpcs_and_shaping_move_the_counters() {
     assert_eq!(m.handled("bidi_stream", SHAPING, "Shape", "OK"), 1.0);
     assert_eq!(m.value("grpc_server_handling_seconds_count", &shape), 1.0);
     assert_eq!(m.value("tamrm_open_streams", &[]), 0.0);
+    assert_eq!(m.value("tamrm_stream_bytes_reserved", &[]), 0.0);
 
     // A stream that fails after its headers went out ends with the status in its trailers.
     let err = Stream::open(&mut c, "nope", 1).await.err().unwrap();
