@@ -101,10 +101,6 @@ impl RunningServer {
     }
 }
 
-/// HTTP/2 receive window of one stream: what a client can have in flight on a stream
-/// whose answers it does not read (the server stops reading a stream whose two queued
-/// answers are not taken). hyper's default.
-const STREAM_WINDOW: u32 = 1 << 20;
 /// HTTP/2 receive window of one connection, shared by its streams: 16 streams' worth, so
 /// that one stalled stream cannot stop the others of its connection (with hyper's default
 /// the two windows are equal, and it does). The bound on what one connection can make the
@@ -196,7 +192,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         None => Server::builder(),
     };
     let router = builder
-        .initial_stream_window_size(STREAM_WINDOW)
+        .initial_stream_window_size(crate::service::STREAM_WINDOW)
         .initial_connection_window_size(CONNECTION_WINDOW)
         .http2_keepalive_interval((keepalive > 0).then(|| Duration::from_secs(keepalive)))
         .http2_keepalive_timeout(Some(Duration::from_secs(

@@ -26,6 +26,12 @@ use crate::session::validate_task_id;
 use crate::telemetry::Metrics;
 use convert::{config_input, pool_proto, task_proto, trajectory_input};
 
+/// HTTP/2 receive window of one stream: what a client can have in flight on a stream
+/// whose answers it does not read (the server stops reading a stream whose two queued
+/// answers are not taken). hyper's default. A Shape stream counts it against the memory
+/// limits (`OpenRequest::transport_bytes`).
+pub const STREAM_WINDOW: u32 = 1 << 20;
+
 /// The Shaping service over a [`Registry`].
 #[derive(Clone)]
 pub struct ShapingService {

@@ -120,6 +120,7 @@ async fn serve<A: Answers>(
                 num_envs: o.num_envs,
                 resume: &resume,
                 client_id: &o.client_id,
+                transport_bytes: u64::from(super::STREAM_WINDOW),
             };
             match StreamSession::open(&registry, &req).await {
                 Ok(s) => s,

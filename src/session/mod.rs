@@ -44,6 +44,10 @@ pub struct OpenRequest<'a> {
     pub resume: &'a [Resume<'a>],
     /// Names the client across its streams; empty for none.
     pub client_id: &'a str,
+    /// Bytes the transport holds for the stream besides the session (a gRPC stream's
+    /// receive window), counted with it against `max_stream_bytes` and
+    /// `max_total_stream_bytes`.
+    pub transport_bytes: u64,
 }
 
 impl Default for OpenRequest<'_> {
@@ -55,6 +59,7 @@ impl Default for OpenRequest<'_> {
             num_envs: 0,
             resume: &[],
             client_id: "",
+            transport_bytes: 0,
         }
     }
 }
@@ -160,18 +165,21 @@ impl StreamSession {
         let config = *task.config();
         let bytes = config
             .env_bytes_bound()
-            .saturating_mul(u64::from(req.num_envs));
+            .saturating_mul(u64::from(req.num_envs))
+            .saturating_add(req.transport_bytes);
         let max = registry.limits().max_stream_bytes;
         if bytes > max {
             return Err(Error::ResourceExhausted(format!(
                 "open: {} envs of up to {} bytes each (max_trajectory_len {} actions of {} \
-                 bytes, pool_capacity {}) hold up to {bytes} bytes, past this server's limit \
-                 max_stream_bytes = {max}; open fewer envs per stream",
+                 bytes, pool_capacity {}) and {} bytes of transport hold up to {bytes} \
+                 bytes, past this server's limit max_stream_bytes = {max}; open fewer envs \
+                 per stream",
                 req.num_envs,
                 config.env_bytes_bound(),
                 config.max_trajectory_len,
                 config.action_space.action_bytes(),
-                config.pool_capacity
+                config.pool_capacity,
+                req.transport_bytes
             )));
         }
         let memory = registry.reserve_stream_bytes(bytes)?;

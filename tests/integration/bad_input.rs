@@ -1659,11 +1659,13 @@ async fn shape_answer_over_max_message_bytes_is_refused_before_applying() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn memory_limits_refuse_a_pool_or_stream_past_them_and_a_closed_stream_frees_its_share() {
     // One env of a task with max_trajectory_len 10 and pool_capacity 2 reckons
-    // 10 × 4 + 2 × 24 = 88 bytes; its pool 2 × 10 × 4 = 80.
+    // 10 × 4 + 2 × 24 = 88 bytes, and a stream its receive window on top; its pool
+    // 2 × 10 × 4 = 80.
+    let window = u64::from(tamrm::service::STREAM_WINDOW);
     let server = start_server(None, |s| {
         s.limits.max_pool_bytes = 80;
-        s.limits.max_stream_bytes = 3 * 88;
-        s.limits.max_total_stream_bytes = 5 * 88;
+        s.limits.max_stream_bytes = 3 * 88 + window;
+        s.limits.max_total_stream_bytes = 5 * 88 + 2 * window;
     })
     .await;
     let mut c = connect(server.addr()).await;
@@ -1699,12 +1701,13 @@ async fn memory_limits_refuse_a_pool_or_stream_past_them_and_a_closed_stream_fre
             assert!(s.message().contains(limit), "{limit}: {s:?}");
         }
     };
-    refused(Stream::open(&mut c, "t", 4).await, "max_stream_bytes = 264");
+    let limit = format!("max_stream_bytes = {}", 3 * 88 + window);
+    refused(Stream::open(&mut c, "t", 4).await, &limit);
     let (mut three, _) = Stream::open(&mut c, "t", 3).await.unwrap();
     let (two, _) = Stream::open(&mut c, "t", 2).await.unwrap();
     refused(
         Stream::open(&mut c, "t", 1).await,
-        "max_total_stream_bytes = 440",
+        &format!("max_total_stream_bytes = {}", 5 * 88 + 2 * window),
     );
     wait_open_streams(&mut c, "t", 2).await;
     // The open streams still shape.

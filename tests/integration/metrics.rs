@@ -131,8 +131,8 @@ async fn rpcs_and_shaping_move_the_counters() {
     assert_eq!(m.value("tamrm_open_streams", &[]), 1.0);
     assert_eq!(
         m.value("tamrm_stream_bytes_reserved", &[]),
-        (2 * (100_000 * 4 + 8 * 24)) as f64,
-        "2 envs of the default max_trajectory_len on a pool of 8"
+        (2 * (100_000 * 4 + 8 * 24) + tamrm::service::STREAM_WINDOW as usize) as f64,
+        "2 envs of the default max_trajectory_len on a pool of 8, and the stream's window"
     );
     let task = [("task", "m")];
     assert_eq!(m.value("tamrm_steps_shaped_total", &task), 6.0);

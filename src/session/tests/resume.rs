@@ -74,6 +74,7 @@ async fn a_re_sent_episode_end_is_committed_once_per_client() {
         num_envs: 1,
         resume,
         client_id: "client-1",
+        ..Default::default()
     };
     let mut s = StreamSession::open(&r, &with_client(&[])).await.unwrap();
     s.step(&one(&[1], &[1.0], false)).await.unwrap();
@@ -141,6 +142,7 @@ async fn client_1(r: &Registry, resume: Option<(&'static [u32], u64)>) -> Stream
         num_envs: 1,
         resume: if resume.is_some() { &listed } else { &[] },
         client_id: "client-1",
+        ..Default::default()
     };
     StreamSession::open(r, &req).await.unwrap()
 }
@@ -299,6 +301,7 @@ async fn client_1_listing(r: &Registry, num_envs: u32, resume: &[Resume<'_>]) ->
         num_envs,
         resume,
         client_id: "client-1",
+        ..Default::default()
     };
     StreamSession::open(r, &req).await.unwrap()
 }

@@ -224,6 +224,7 @@ impl EngineStream {
             num_envs: self.num_envs,
             resume: &[],
             client_id: &self.client_id,
+            transport_bytes: 0,
         };
         self.session = Some(
             self.rt
