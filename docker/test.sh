@@ -3,7 +3,11 @@
 #   build tamrm:latest (docker/build.sh), run it with a named volume on a free port, wait
 #   for HEALTHCHECK to pass, create a task and shape episodes through the Python client,
 #   find them counted on the metrics endpoint (GET /metrics), stop and start the container and find the pool and task intact, check that the server
-#   does not run as root and that the image is at most 20 MB, then remove what it made.
+#   does not run as root and that the image is at most 20 MB; then run a second container
+#   with TLS and an API key file mounted read-only (certificates made by trustme, the key
+#   by `tamrm key`), wait for its unchanged HEALTHCHECK, and check that a client with
+#   the key and the CA shapes while one without the key, with a wrong key, or without
+#   the CA is refused; then remove what it made.
 #
 #   bash docker/test.sh
 #
@@ -36,13 +40,17 @@ name="tamrm-test-$$"
 vol="tamrm-test-$$"
 cleanup() {
     local rc=$?
-    if [[ $rc -ne 0 ]] && podman container exists "$name" 2>/dev/null; then
-        echo "--- container log" >&2
-        podman logs "$name" 2>&1 | tail -n 40 >&2 || true
+    if [[ $rc -ne 0 ]]; then
+        for c in "$name" "$name-secure"; do
+            podman container exists "$c" 2>/dev/null || continue
+            echo "--- log of $c" >&2
+            podman logs "$c" 2>&1 | tail -n 40 >&2 || true
+        done
         echo "--- podman's stderr" >&2
         tail -n 20 "$work/podman.err" >&2 || true
     fi
     podman rm -f -t 0 "$name" >/dev/null 2>&1 || true
+    podman rm -f -t 0 "$name-secure" >/dev/null 2>&1 || true
     podman volume rm -f "$vol" >/dev/null 2>&1 || true
     rm -rf "$work"
     exit $rc
@@ -97,16 +105,17 @@ run() {
 wait_healthy() {
     # `podman healthcheck run` runs the image's HEALTHCHECK in the container now (the
     # periodic checks need systemd timers, which a CI container may not have).
+    local c="${1:-$name}" p="${2:-$port}"
     for _ in $(seq 1 60); do
-        [[ $(podman inspect --format '{{.State.Running}}' "$name") == true ]] \
-            || fail "the container stopped"
-        if podman healthcheck run "$name" >/dev/null 2>&1; then
-            say "healthy on 127.0.0.1:$port"
+        [[ $(podman inspect --format '{{.State.Running}}' "$c") == true ]] \
+            || fail "the container $c stopped"
+        if podman healthcheck run "$c" >/dev/null 2>&1; then
+            say "$c healthy on 127.0.0.1:$p"
             return
         fi
         sleep 0.5
     done
-    fail "not healthy after 30 s"
+    fail "$c not healthy after 30 s"
 }
 client() { "$py" - "$port" "$work/pool.json" "$@" <<'PY'
 import json, sys
@@ -192,5 +201,78 @@ podman stop -t 35 "$name" >/dev/null 2>>"$work/podman.err"
 podman start "$name" >/dev/null 2>>"$work/podman.err"
 wait_healthy
 client check
+podman rm -f -t 0 "$name" >/dev/null 2>&1
+
+say "running $name-secure: TLS and API keys"
+secure="$work/secure"
+mkdir -p "$secure"
+"$py" - "$secure" <<'PY' || fail "could not make the test certificates (trustme)"
+import sys
+import trustme
+
+out = sys.argv[1]
+ca = trustme.CA()
+leaf = ca.issue_cert("localhost", "127.0.0.1")
+ca.cert_pem.write_to_path(f"{out}/ca.crt")
+leaf.private_key_pem.write_to_path(f"{out}/server.key")
+# The chain up to the CA (`cat ca.crt >> server.crt`, deployment.md): the unchanged
+# HEALTHCHECK trusts the certificates in the server's own file.
+with open(f"{out}/server.crt", "wb") as f:
+    for blob in leaf.cert_chain_pems:
+        f.write(blob.bytes())
+    f.write(ca.cert_pem.bytes())
+trustme.CA().cert_pem.write_to_path(f"{out}/other-ca.crt")
+PY
+"$bin" key --tenant acme --role writer >"$secure/key.out"
+key=$(sed -n 's/^# key: //p' "$secure/key.out")
+[[ "$key" == tamrm_* ]] || fail "tamrm key printed no key: $(cat "$secure/key.out")"
+grep -v '^#' "$secure/key.out" >"$secure/keys.toml"
+grep -q "$key" "$secure/keys.toml" && fail "the key file holds the key in clear"
+# The server (uid 65532) reads them through a read-only bind mount.
+chmod 755 "$secure" && chmod 644 "$secure"/*
+sport=$(free_port)
+smport=$(free_port)
+podman run -d --runtime runc --network host --name "$name-secure" \
+    -v "$secure:/etc/tamrm:ro" --read-only --cap-drop ALL --security-opt no-new-privileges \
+    -e TAMRM_LISTEN="127.0.0.1:$sport" -e TAMRM_METRICS_LISTEN="127.0.0.1:$smport" \
+    -e TAMRM_TLS_CERT=/etc/tamrm/server.crt \
+    -e TAMRM_TLS_KEY=/etc/tamrm/server.key -e TAMRM_API_KEYS=/etc/tamrm/keys.toml \
+    "$image" >/dev/null 2>>"$work/podman.err"
+wait_healthy "$name-secure" "$sport"
+slog=$(podman logs "$name-secure" 2>&1)
+grep -q "TLS on" <<<"$slog" || fail "the secure container's log does not say TLS on"
+grep -q "API keys required" <<<"$slog" || fail "the secure container's log does not say API keys required"
+"$py" - "$sport" "$secure" "$key" <<'PY' || fail "TLS and API keys in the container"
+import sys
+import numpy as np
+import tamrm
+
+port, secure, key = sys.argv[1], sys.argv[2], sys.argv[3]
+addr = f"localhost:{port}"
+ca = f"{secure}/ca.crt"
+with tamrm.Client(addr, api_key=key, root_certificates=ca) as c:
+    c.create_task("secure", num_actions=2, pool_capacity=2, start_step=0)
+    with c.session("secure", 2) as s:
+        r = s.step(np.array([0, 1]), np.array([1.0, 0.5]), np.array([True, False]))
+    assert r.rewards.shape == (2,) and np.all(np.isfinite(r.rewards)), r
+    assert c.get_task("secure").stats.episodes_completed == 1
+refused = {
+    "no key": dict(root_certificates=ca),
+    "a wrong key": dict(api_key="tamrm_" + "0" * 64, root_certificates=ca),
+    "a CA that did not sign the server": dict(api_key=key, root_certificates=f"{secure}/other-ca.crt"),
+}
+for what, opts in refused.items():
+    try:
+        with tamrm.Client(addr, **opts) as c:
+            c.list_tasks()
+    except tamrm.Unauthenticated:
+        assert what != "a CA that did not sign the server", what
+    except tamrm.TamrmError as e:
+        assert what == "a CA that did not sign the server", (what, e)
+    else:
+        raise AssertionError(f"a client with {what} was served")
+print("TLS and API keys: the keyed TLS client shaped; no key, a wrong key and a wrong CA were refused")
+PY
+grep -q "$key" <<<"$(podman logs "$name-secure" 2>&1)" && fail "the server logged the API key"
 
 say "ok"
