@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Smoke test of the whole reproduction pipeline: lint, unit tests (the server backend
+# Smoke test of the whole reproduction pipeline: lint, types, unit tests (the server backend
 # included, against a local tamrm server), the --quick grid (1 seed, tiny budgets, every
 # experiment x arm, each run on an embedded engine) and the report, written into a
 # temporary directory (docs/reproduction.md is untouched).
@@ -22,6 +22,8 @@ cd experiments
 echo "--- experiments: ruff"
 "$py" -m ruff check .
 "$py" -m ruff format --check .
+echo "--- experiments: mypy"
+"$py" -m mypy
 echo "--- experiments: quick grid (embedded engine)"
 "$py" -m tamrm_experiments run --quick --jobs 2 --out "$tmp/runs" --no-progress
 echo "--- experiments: report"

@@ -237,7 +237,7 @@ def train_authors(
             ep["pot"] += pot
             ep["active"] += int(active)
             obs = obs_next
-        lengths.append(ep["steps"])
+        lengths.append(int(ep["steps"]))
         record(
             {
                 "episode": episode,

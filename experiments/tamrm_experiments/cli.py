@@ -51,8 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.out} and plots in {plots}/")
         if args.readme:
             link = os.path.relpath(args.out, args.readme.resolve().parent)
-            summary = readme_summary(analysis, link)
-            changed = update_readme(args.readme, summary)
+            changed = update_readme(args.readme, readme_summary(analysis, link))
             print(f"{'updated' if changed else 'unchanged'}: the summary in {args.readme}")
         return 0
     return 2
