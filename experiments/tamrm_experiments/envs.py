@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 from collections import deque
-from typing import Any
+from typing import Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -32,6 +32,8 @@ __all__ = [
     "make_mountain_car",
     "maze_random_walk_steps",
     "maze_shortest_path",
+    "mountain_car_random_steps",
+    "random_policy_steps",
 ]
 
 MAZE_SIZE = 8
@@ -120,7 +122,7 @@ class MazeEnv(gym.Env[np.ndarray, int]):
             if not _open(cell):
                 raise ValueError(f"start cell {cell} is a wall or off the grid")
         self.observation_space = gym.spaces.Box(0.0, MAZE_SIZE - 1.0, (2,), np.float32)
-        self.action_space = gym.spaces.Discrete(4)
+        self.action_space = cast("gym.spaces.Space[int]", gym.spaces.Discrete(4))
         self.max_steps = max_steps
         self.start = start
         self.switch_start_after = switch_start_after
@@ -234,3 +236,61 @@ def maze_random_walk_steps(start: tuple[int, int] = MAZE_START) -> float:
             nxt = (c[0] + dx, c[1] + dy)
             a[i, index[nxt if _open(nxt) else c]] -= 0.25
     return float(np.linalg.solve(a, b)[index[start]])
+
+
+def mountain_car_random_steps(max_steps: int, episodes: int = 2000, seed: int = 0) -> np.ndarray:
+    """Episode lengths of a uniformly random policy in ``MountainCar-v0``'s dynamics, capped
+    at ``max_steps`` (a capped episode counts ``max_steps``).
+
+    ``episodes`` episodes run side by side in numpy: the same update as gymnasium's
+    ``MountainCarEnv.step`` (checked step by step in ``tests/test_envs.py``), fast enough
+    for caps of 100 000 steps, where stepping the gymnasium env would take minutes."""
+    rng = np.random.default_rng(seed)
+    position = rng.uniform(-0.6, -0.4, episodes)
+    velocity = np.zeros(episodes)
+    steps = np.zeros(episodes, dtype=np.int64)
+    running = np.ones(episodes, dtype=bool)
+    for _ in range(max_steps):
+        velocity, position = _mountain_car_step(position, velocity, rng.integers(0, 3, episodes))
+        steps += running
+        running &= ~((position >= 0.5) & (velocity >= 0.0))
+        if not running.any():
+            break
+    return steps
+
+
+def _mountain_car_step(
+    position: np.ndarray, velocity: np.ndarray, action: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``MountainCarEnv.step``'s update, vectorised: (velocity, position) after ``action``."""
+    velocity = np.clip(
+        velocity + (action - 1) * 0.001 + np.cos(3 * position) * -0.0025, -0.07, 0.07
+    )
+    position = np.clip(position + velocity, -1.2, 0.6)
+    velocity = np.where((position == -1.2) & (velocity < 0), 0.0, velocity)
+    return velocity, position
+
+
+def random_policy_steps(experiment: str, max_steps: int, after_switch: bool = False) -> float:
+    """Mean steps per episode of a uniformly random policy: the floor a learner must beat.
+
+    Maze: the exact random walk from the start (``after_switch``: the modified maze's new
+    start). Mountain car: 2000 simulated episodes under the per-episode cap ``max_steps``.
+    Cart pole: 2000 episodes of the gymnasium env, cut at ``max_steps``."""
+    if experiment in ("maze", "maze_modified"):
+        return maze_random_walk_steps(MAZE_NEW_START if after_switch else MAZE_START)
+    if experiment == "mountaincar":
+        return float(mountain_car_random_steps(max_steps).mean())
+    if experiment == "cartpole":
+        env = TimeLimit(gym.make("CartPole-v1").unwrapped, max_episode_steps=max_steps)
+        env.action_space.seed(0)
+        lengths = []
+        for episode in range(2000):
+            env.reset(seed=episode)
+            n, done = 0, False
+            while not done:
+                _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+                n, done = n + 1, terminated or truncated
+            lengths.append(n)
+        return float(np.mean(lengths))
+    raise ValueError(f"no random-policy reference for experiment {experiment!r}")

@@ -7,6 +7,7 @@ the list of deviations from the paper (which describe the setup, not the results
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections import Counter
@@ -19,7 +20,12 @@ import pandas as pd
 
 from tamrm_experiments.args import parser
 from tamrm_experiments.configs import ARMS, EXPERIMENTS, make_specs, runs_variant
-from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
+from tamrm_experiments.envs import (
+    MAZE_NEW_START,
+    MAZE_START,
+    maze_shortest_path,
+    random_policy_steps,
+)
 from tamrm_experiments.experiments.base import Claim, Metric
 from tamrm_experiments.stats import (
     Interval,
@@ -188,7 +194,7 @@ def _curves(
     low = np.full(n, np.nan)
     high = np.full(n, np.nan)
     for j in range(n):
-        iv = t_interval(mat[:, j])
+        iv = t_interval(mat[:, j].tolist())
         low[j], high[j] = iv.low, iv.high
     if log:
         mean, low, high = 10**mean, 10**low, 10**high
@@ -597,6 +603,11 @@ class ClaimRow:
     censored: bool = False
 
     @property
+    def test_key(self) -> tuple[Any, ...]:
+        """What the test reads: its metric and its two samples."""
+        return (self.claim.metric, tuple(self.arm_values), tuple(self.plain_values))
+
+    @property
     def complete(self) -> bool:
         """Every requested seed of both arms is done."""
         n = min(len(self.arm_values), len(self.plain_values))
@@ -748,9 +759,27 @@ def _claim_rows(
             )
             row.measure()
             rows.append(row)
-    for row, adj in zip(rows, holm([r.p for r in rows]), strict=True):
-        row.p_holm = adj
+    _adjust(rows)
     return rows
+
+
+def _adjust(rows: list[ClaimRow]) -> None:
+    """Holm-adjust the rows' p-values together, each distinct test once: rows whose two
+    samples are equal value by value (e.g. the authors' maze PBRS-only arm, which reads
+    neither the pool nor k, so pool 3 and pool 10 run identically) are one hypothesis
+    tested once, and share its adjusted p-value."""
+    slot: dict[tuple[Any, ...], int] = {}
+    for row in rows:
+        slot.setdefault(row.test_key, len(slot))
+    p_of = {slot[row.test_key]: row.p for row in rows}  # equal samples, equal p
+    adjusted = holm([p_of[i] for i in range(len(slot))])
+    for row in rows:
+        row.p_holm = adjusted[slot[row.test_key]]
+
+
+def _distinct_tests(rows: list[ClaimRow]) -> int:
+    """How many distinct tests (see :func:`_adjust`) with a p-value the rows hold."""
+    return len({row.test_key for row in rows if not math.isnan(row.p)})
 
 
 def _claims_table(rows: list[ClaimRow]) -> list[str]:
@@ -760,8 +789,10 @@ def _claims_table(rows: list[ClaimRow]) -> list[str]:
         "One row per claim of the paper and variant of ours. *Ours* cells: mean over seeds "
         "[95% t-interval] per arm, the Welch 95% interval of (arm - plain), the unadjusted "
         "p-value (Welch's t-test; Fisher's exact test for seeds solved) and the "
-        f"Holm-adjusted one over the {sum(1 for r in rows if not math.isnan(r.p))} tests of "
-        "this table. A claim *holds* if the adjusted p < 0.05 in the claimed direction, "
+        f"Holm-adjusted one over the {_distinct_tests(rows)} distinct tests of this table "
+        "(rows whose runs are identical, such as the authors' maze PBRS-only arm, which "
+        "reads neither the pool nor k, are one test). A claim *holds* if the adjusted "
+        "p < 0.05 in the claimed direction, "
         "*does not hold* if it is significant the other way or if every planned seed is "
         "done without a significant difference, and *cannot be decided yet* otherwise.",
         "",
@@ -926,48 +957,73 @@ def _seed_list(seeds: list[int]) -> str:
 
 
 def _pilot(groups: dict[Group, list[Run]]) -> list[str]:
-    """Does the plain learner learn within the budget? First vs last episodes."""
-    from tamrm_experiments.envs import maze_random_walk_steps
-
-    walk = maze_random_walk_steps(MAZE_START)
+    """Does the plain learner learn within the budget? First vs last episodes, and the
+    last episodes vs a uniformly random policy."""
     lines = [
         "Plain learner per variant: mean steps per episode over the first and the last 20 "
-        "episodes of each seed (mean [95% t-interval] over seeds). In the maze a uniformly "
-        f"random walk needs {walk:,.0f} steps on average (exact, from {MAZE_START}; "
-        f"shortest path {maze_shortest_path(MAZE_START)}); in cart pole more is better "
-        "(200 = kept up for the whole episode); in mountain car fewer is better.",
+        "episodes of each seed (mean [95% t-interval] over seeds), beside a uniformly random "
+        "policy's mean steps per episode under the same cap (maze: the exact random walk, "
+        f"from {MAZE_START}, shortest path {maze_shortest_path(MAZE_START)}; modified maze: "
+        f"from the new start {MAZE_NEW_START}, where its last episodes start; mountain car "
+        "and cart pole: 2000 simulated episodes). In cart pole more is better (200 = kept up "
+        "for the whole episode), elsewhere fewer. *Learns* if the last 20 episodes are "
+        "detectably better (their interval clear of the other) than the first 20 or than "
+        "the random policy.",
         "",
-        "| experiment | variant | seeds | first 20 episodes | last 20 episodes | learns? |",
-        "|---|---|---|---|---|---|",
+        "| experiment | variant | seeds | first 20 episodes | last 20 episodes "
+        "| random policy | learns? |",
+        "|---|---|---|---|---|---|---|",
     ]
     for (exp_name, variant), runs in groups.items():
         plain = [r for r in runs if r.arm == "plain" and len(r.df) >= 40]
         if not plain or any(r.variant != variant for r in plain):
             continue  # none, or another variant's plain runs (listed under that variant)
         exp = EXPERIMENTS[exp_name]
-        first, last, learns = _plain_learns(exp_name, plain)
+        pilot = _plain_learns(exp_name, plain)
         lines.append(
             f"| {exp.short} | {exp.variant(variant).label} | {len(plain)} | "
-            f"{_fmt_interval(first, '{:,.1f}')} | {_fmt_interval(last, '{:,.1f}')} | {learns} |"
+            f"{_fmt_interval(pilot.first, '{:,.1f}')} | {_fmt_interval(pilot.last, '{:,.1f}')} "
+            f"| {pilot.random_policy:,.1f} | {pilot.verdict} |"
         )
     lines.append("")
     return lines
 
 
-def _plain_learns(exp_name: str, plain: list[Run]) -> tuple[Interval, Interval, str]:
-    """Mean steps per episode over the first and the last 20 episodes of the plain runs
-    (t-intervals over seeds), and whether the last 20 are detectably better: ``yes``,
-    ``not detectably`` or ``n=1``."""
+@dataclass(frozen=True)
+class Pilot:
+    """Whether a variant's plain learner learns: its first and last 20 episodes (mean steps
+    per episode, t-intervals over seeds), a random policy's mean, and the verdict."""
+
+    first: Interval
+    last: Interval
+    random_policy: float
+    verdict: str
+
+
+@functools.cache
+def _random_policy(exp_name: str, max_steps: int, after_switch: bool) -> float:
+    """:func:`random_policy_steps`, once per report for each experiment and cap."""
+    return random_policy_steps(exp_name, max_steps, after_switch)
+
+
+def _plain_learns(exp_name: str, plain: list[Run]) -> Pilot:
+    """The pilot of ``plain`` (runs of at least 40 episodes): ``yes`` if the last 20
+    episodes are detectably better than the first 20 or than a random policy, else ``not
+    detectably`` (``n=1`` for a single seed)."""
     plain = [r for r in plain if len(r.df) >= 40]
     first = t_interval([float(r.df["steps"].head(20).mean()) for r in plain])
     last = t_interval([float(r.df["steps"].tail(20).mean()) for r in plain])
+    budget = plain[0].budget
+    random_policy = _random_policy(
+        exp_name, int(budget["max_episode_steps"]), budget.get("switch_after") is not None
+    )
     if math.isnan(last.low):
-        return first, last, "n=1"
+        return Pilot(first, last, random_policy, "n=1")
     if EXPERIMENTS[exp_name].headline == "mean_steps":  # more steps kept up is better
-        better = last.low > first.high
+        better = last.low > first.high or last.low > random_policy
     else:
-        better = last.high < first.low
-    return first, last, "yes" if better else "not detectably"
+        better = last.high < first.low or last.high < random_policy
+    return Pilot(first, last, random_policy, "yes" if better else "not detectably")
 
 
 def _backends(runs: list[Run]) -> str:
@@ -1112,10 +1168,14 @@ def write_report(
     lines += [
         "## Claims",
         "",
-        f"{n_done} of the {n_req} runs of the current grid asked for so far are finished "
-        "(status below)"
+        (
+            f"All {n_req} runs of the grid are finished (status below)"
+            if n_done == n_req
+            else f"{n_done} of the {n_req} runs of the current grid asked for so far are "
+            "finished (status below)"
+        )
         + (f", besides the first report's {len(earlier)} runs" if earlier else "")
-        + "; the grid is resumable and later sessions continue it.",
+        + ("." if n_done == n_req else "; the grid is resumable and later sessions continue it."),
         "",
     ]
     lines += _claims_table(an.rows)
@@ -1174,9 +1234,14 @@ def readme_summary(an: Analysis, report_link: str = "docs/reproduction.md") -> l
     holding = [row for row in rows if row.judge()[0] == "holds"]
     n_done, n_req = an.progress
     lines = [
-        f"{n_done} of the {n_req} runs of the current grid are finished"
+        (
+            f"All {n_req} runs of the grid are finished"
+            if n_done == n_req
+            else f"{n_done} of the {n_req} runs of the current grid are finished"
+        )
         + (f", besides the first report's {len(an.earlier)}" if an.earlier else "")
-        + f". The {len(rows)} claim tests (Holm-corrected together): "
+        + f". The {len(rows)} claim rows ({_distinct_tests(rows)} distinct tests, "
+        "Holm-corrected together): "
         + ", ".join(f"{w} {counts[w]}" for w in ("holds", "does not hold", "cannot be decided yet"))
         + "."
         + (
@@ -1204,7 +1269,7 @@ def readme_summary(an: Analysis, report_link: str = "docs/reproduction.md") -> l
         key = (row.exp_name, row.variant)
         if key not in learns:
             plain = [r for r in an.groups[key] if r.arm == "plain"]
-            learns[key] = _plain_learns(row.exp_name, plain)[2] if plain else "-"
+            learns[key] = _plain_learns(row.exp_name, plain).verdict if plain else "-"
         claim = f"{exp.short}: {row.claim.text}"
         arm = ARMS[row.claim.arm].short
         if row.claim.metric == "solved":

@@ -161,3 +161,47 @@ def test_maze_random_walk_steps_matches_a_simulation():
     # the mean to within ~6% (1 sigma).
     assert abs(np.mean(lengths) - exact) < 0.2 * exact
     assert 700 < exact < 900
+
+
+def test_the_vectorised_mountain_car_step_is_gymnasiums():
+    from gymnasium.envs.classic_control.mountain_car import MountainCarEnv
+
+    from tamrm_experiments.envs import _mountain_car_step
+
+    env = MountainCarEnv()
+    rng = np.random.default_rng(1)
+    compared = 0
+    for episode in range(5):
+        env.reset(seed=episode)
+        for _ in range(2000):
+            position, velocity = (float(v) for v in env.state)
+            action = int(rng.integers(3))
+            env.step(action)
+            vel, pos = _mountain_car_step(
+                np.array([position]), np.array([velocity]), np.array([action])
+            )
+            assert (pos[0], vel[0]) == pytest.approx(tuple(float(v) for v in env.state), abs=1e-12)
+            compared += 1
+    assert compared == 10_000
+
+
+def test_random_policy_references():
+    from tamrm_experiments.envs import (
+        maze_random_walk_steps,
+        mountain_car_random_steps,
+        random_policy_steps,
+    )
+
+    # Cart pole: a random policy drops the pole after ~22 steps (the well-known figure).
+    assert 18 < random_policy_steps("cartpole", 200) < 26
+    # Mountain car: a random policy rarely reaches the flag; a tighter cap cuts more.
+    capped = mountain_car_random_steps(1_000, episodes=300)
+    assert capped.max() == 1_000 and 0.5 < (capped == 1_000).mean() < 1.0
+    looser = mountain_car_random_steps(10_000, episodes=300)
+    assert np.all(looser >= capped) and looser.mean() > capped.mean()
+    assert random_policy_steps("maze", 10_000) == maze_random_walk_steps()
+    assert (
+        random_policy_steps("maze_modified", 10_000, after_switch=True) < maze_random_walk_steps()
+    )
+    with pytest.raises(ValueError, match="no random-policy reference"):
+        random_policy_steps("pendulum", 200)

@@ -236,3 +236,27 @@ def test_the_readme_summary_follows_the_packed_runs(tmp_path):
         "README.md's reproduction summary is stale: run `python -m tamrm_experiments "
         "report --runs runs --previous runs-v1 --readme ../README.md` from experiments/"
     )
+
+
+def test_identical_rows_are_one_test_in_the_holm_family():
+    from tamrm_experiments.report import _adjust, _distinct_tests
+    from tamrm_experiments.stats import holm
+
+    plain = [100.0, 102.0, 98.0, 101.0, 99.0] * 2
+    fewer = [96.0, 99.0, 97.0, 98.0, 95.0] * 2
+    other = [99.0, 103.0, 97.0, 100.0, 98.0] * 2
+    # The same samples in two variants (pool 3 and pool 10 of an arm that reads no pool).
+    rows = [
+        _row(fewer, plain, math.nan),
+        _row(other, plain, math.nan),
+        _row(fewer, plain, math.nan),
+    ]
+    _adjust(rows)
+    assert _distinct_tests(rows) == 2
+    expected = holm([rows[0].p, rows[1].p])
+    assert [r.p_holm for r in rows] == [expected[0], expected[1], expected[0]]
+    # Counted three times, the family would adjust more: the duplicate must not count.
+    assert holm([r.p for r in rows])[0] > rows[0].p_holm
+    # A different metric on the same numbers is a different test.
+    rows[2].claim = replace(rows[2].claim, metric="solved")
+    assert _distinct_tests(rows) == 3
