@@ -37,7 +37,7 @@ use crate::registry::DEFAULT_TENANT;
 pub enum Role {
     /// GetTask, ListTasks, GetPool.
     Reader,
-    /// Reader, plus CreateTask, Shape, AddTrajectory.
+    /// Reader, plus CreateTask, Shape, Follow, AddTrajectory.
     Writer,
     /// Writer, plus DeleteTask, ResetPool.
     Admin,
@@ -62,17 +62,21 @@ pub const SHAPING_ROLES: &[(&str, Role)] = &[
     ("GetPool", Role::Reader),
     ("CreateTask", Role::Writer),
     ("Shape", Role::Writer),
+    ("Follow", Role::Writer),
     ("AddTrajectory", Role::Writer),
     ("DeleteTask", Role::Admin),
     ("ResetPool", Role::Admin),
 ];
 
-/// The unary RPCs: every one of [`SHAPING_ROLES`] but the `Shape` stream.
+/// The streaming RPCs of [`SHAPING_ROLES`].
+pub const STREAMING_RPCS: &[&str] = &["Shape", "Follow"];
+
+/// The unary RPCs: every one of [`SHAPING_ROLES`] but the streams.
 pub fn unary_rpcs() -> impl Iterator<Item = &'static str> {
     SHAPING_ROLES
         .iter()
         .map(|(rpc, _)| *rpc)
-        .filter(|rpc| *rpc != "Shape")
+        .filter(|rpc| !STREAMING_RPCS.contains(rpc))
 }
 
 /// What a request without credentials is told, wherever it is refused.
@@ -153,7 +157,7 @@ impl Caller {
         match took {
             Ok(_) => Ok(StreamSlot(self.tenant.clone())),
             Err(_) => Err(Error::ResourceExhausted(format!(
-                "stream quota reached: tenant {:?} may have at most max_open_streams = {} Shape streams open",
+                "stream quota reached: tenant {:?} may have at most max_open_streams = {} streams (Shape and Follow) open",
                 self.tenant.name,
                 max.unwrap_or_default()
             ))),

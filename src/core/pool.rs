@@ -86,7 +86,18 @@ impl Pool {
     /// `next_seq`, finite scores.
     pub fn restore(
         capacity: usize,
-        mut trajectories: Vec<Trajectory>,
+        trajectories: Vec<Trajectory>,
+        version: u64,
+        next_seq: u64,
+    ) -> Result<Pool, String> {
+        let trajectories = trajectories.into_iter().map(Arc::new).collect();
+        Pool::from_parts(capacity, trajectories, version, next_seq)
+    }
+
+    /// [`Pool::restore`] from shared trajectories.
+    fn from_parts(
+        capacity: usize,
+        mut trajectories: Vec<Arc<Trajectory>>,
         version: u64,
         next_seq: u64,
     ) -> Result<Pool, String> {
@@ -114,11 +125,65 @@ impl Pool {
             }
         }
         let mut pool = Pool::new(capacity);
-        pool.trajectories = trajectories.into_iter().map(Arc::new).collect();
+        pool.trajectories = trajectories;
         pool.version = version;
         pool.next_seq = next_seq;
         pool.recompute();
         Ok(pool)
+    }
+
+    /// What changed from this pool to `newer`, a later version of the same task's pool
+    /// (SPEC §13 updates): the seqs of the trajectories it no longer has, and the
+    /// trajectories it gained, both by seq.
+    pub fn diff(&self, newer: &Pool) -> (Vec<u64>, Vec<Arc<Trajectory>>) {
+        let (old, new) = (&self.seqs, &newer.seqs);
+        let (mut removed, mut added) = (Vec::new(), Vec::new());
+        let (mut i, mut j) = (0, 0);
+        // Both are ordered by seq: one merge walk.
+        while i < old.len() || j < new.len() {
+            match (old.get(i), new.get(j)) {
+                (Some(a), Some(b)) if a == b => (i, j) = (i + 1, j + 1),
+                (Some(a), Some(b)) if a < b => {
+                    removed.push(*a);
+                    i += 1;
+                }
+                (Some(a), None) => {
+                    removed.push(*a);
+                    i += 1;
+                }
+                _ => {
+                    added.push(newer.trajectories[j].clone());
+                    j += 1;
+                }
+            }
+        }
+        (removed, added)
+    }
+
+    /// This pool with an update applied (what [`Pool::diff`] gave to this pool's
+    /// version): the trajectories of `removed` seqs gone, `added` in, at `version` and
+    /// `next_seq`. The result is checked as [`Pool::restore`] checks; a seq in `removed`
+    /// that the pool does not hold, or an added seq it already holds, is an error.
+    pub fn with_update(
+        &self,
+        removed: &[u64],
+        added: Vec<Arc<Trajectory>>,
+        version: u64,
+        next_seq: u64,
+    ) -> Result<Pool, String> {
+        if let Some(seq) = removed.iter().find(|s| !self.seqs.contains(s)) {
+            return Err(format!(
+                "the update removes seq {seq}, which the pool does not hold"
+            ));
+        }
+        let mut trajectories: Vec<Arc<Trajectory>> = self
+            .trajectories
+            .iter()
+            .filter(|t| !removed.contains(&t.seq))
+            .cloned()
+            .collect();
+        trajectories.extend(added);
+        Pool::from_parts(self.capacity, trajectories, version, next_seq)
     }
 
     fn recompute(&mut self) {

@@ -59,6 +59,8 @@ pub struct TaskHandle {
     ended: parking_lot::Mutex<EndedEpisodes>,
     /// The counters after the last [`TaskHandle::sync_counters`].
     synced: parking_lot::Mutex<Counters>,
+    /// Announces every publish (the new version) and the deletion, for followers.
+    changes: tokio::sync::watch::Sender<u64>,
 }
 
 /// Decrements a task's open-stream count when dropped.
@@ -104,6 +106,7 @@ impl TaskHandle {
             store,
             ended: parking_lot::Mutex::new(EndedEpisodes::default()),
             synced: parking_lot::Mutex::new(counters),
+            changes: tokio::sync::watch::Sender::new(0),
         }
     }
 
@@ -146,6 +149,13 @@ impl TaskHandle {
 
     pub(super) fn mark_deleted(&self) {
         self.deleted.store(true, Ordering::Release);
+        self.changes.send_modify(|_| {});
+    }
+
+    /// A receiver woken at every publish of a new pool and at the task's deletion (then
+    /// [`TaskHandle::check_live`] fails): what a follower (SPEC §13) waits on.
+    pub fn subscribe(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.changes.subscribe()
     }
 
     /// The published pool (a pointer copy).
@@ -214,6 +224,8 @@ impl TaskHandle {
         if version >= slot.version() {
             *slot = pool;
             self.published.store(version, Ordering::Release);
+            drop(slot);
+            self.changes.send_replace(version);
         }
     }
 

@@ -85,6 +85,7 @@ pub fn pool_proto(task_id: &str, pool: &Pool) -> proto::Pool {
             .iter()
             .map(|t| trajectory_proto(t))
             .collect(),
+        next_seq: pool.next_seq(),
     }
 }
 

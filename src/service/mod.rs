@@ -4,6 +4,7 @@
 
 pub mod codec;
 pub mod convert;
+mod follow;
 pub mod status;
 mod stream;
 
@@ -97,6 +98,26 @@ impl ShapingService {
         let inbound = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         tokio::spawn(stream::run(
+            self.registry.clone(),
+            self.shutdown.clone(),
+            (caller, slot),
+            self.metrics.clone(),
+            inbound,
+            tx,
+        ));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    /// Starts a Follow stream (SPEC §13).
+    fn open_follow(
+        &self,
+        request: Request<Streaming<proto::FollowRequest>>,
+    ) -> Result<Response<ReceiverStream<Result<proto::FollowResponse, Status>>>, Status> {
+        let caller = self.caller(&request)?;
+        let slot = caller.open_stream()?;
+        let inbound = request.into_inner();
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        tokio::spawn(follow::run(
             self.registry.clone(),
             self.shutdown.clone(),
             (caller, slot),
@@ -225,6 +246,15 @@ impl Shaping for ShapingService {
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<Self::ShapeStream>, Status> {
         self.open_shape(request)
+    }
+
+    type FollowStream = ReceiverStream<Result<proto::FollowResponse, Status>>;
+
+    async fn follow(
+        &self,
+        request: Request<Streaming<proto::FollowRequest>>,
+    ) -> Result<Response<Self::FollowStream>, Status> {
+        self.open_follow(request)
     }
 }
 

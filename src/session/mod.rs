@@ -15,10 +15,12 @@
 //! commit and publish the pool it returns.
 
 mod batch;
+mod follow;
 
 use std::sync::Arc;
 
 pub use batch::{Batch, Entries};
+pub use follow::{Ack, EndInput, FollowRequest, FollowSession, PoolNews, MAX_REPORTED_STEPS};
 
 use crate::core::{ActionCount, Episode, KnnScratch, Pool, StepInput, StepOutput};
 use crate::error::Error;
