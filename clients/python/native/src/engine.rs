@@ -3,6 +3,7 @@
 //! statuses); streams are `session::StreamSession`s fed straight from numpy columns.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use prost::Message;
 use pyo3::prelude::*;
@@ -18,6 +19,7 @@ use tokio_util::sync::CancellationToken;
 use tonic::{Code, Request, Status};
 
 use crate::columns::{Answer, Prepared};
+use crate::follow::{Connection, FollowStore};
 use crate::stream::{NativeStream, Transport};
 use crate::{runtime, status, status_error};
 
@@ -38,6 +40,76 @@ pub(crate) struct EngineStream {
     num_envs: u32,
     client_id: String,
     rt: &'static Runtime,
+    /// For a local session (SPEC §13): the store following the server, and the tasks
+    /// that take its updates in and report the steps.
+    local: Option<Local>,
+}
+
+/// What a local session holds besides the engine's stream.
+pub(crate) struct Local {
+    store: Arc<FollowStore>,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+}
+
+impl Drop for Local {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+    }
+}
+
+/// How often a local session reports the steps it shaped when no episode end does.
+const STEPS_REPORT: Duration = Duration::from_secs(1);
+
+/// How long closing a local session waits to report its last steps.
+const CLOSE_REPORT: Duration = Duration::from_secs(5);
+
+/// A local session (SPEC §13): the engine's session layer over a registry whose one task
+/// follows the server's through `conn`.
+pub(crate) fn local_session(
+    py: Python<'_>,
+    rt: &'static Runtime,
+    conn: Connection,
+) -> PyResult<NativeStream> {
+    let (task_id, num_envs, client_id) =
+        (conn.task_id.clone(), conn.num_envs, conn.client_id.clone());
+    let store = Arc::new(
+        py.detach(|| FollowStore::open(rt, conn))
+            .map_err(|s| status_error(&s))?,
+    );
+    let opened = store.opened().clone();
+    let shared: Arc<dyn Store> = store.clone();
+    let (registry, _) = py
+        .detach(|| rt.block_on(Registry::open(shared, Limits::default())))
+        .map_err(|e| status(Code::Internal, e.to_string()))?;
+    let registry = Arc::new(registry);
+    let tasks = {
+        let _in_rt = rt.enter();
+        [
+            registry.watch_changes(),
+            registry.sync_counters_every(STEPS_REPORT),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    };
+    let mut stream = EngineStream {
+        session: None,
+        registry,
+        task_id,
+        num_envs,
+        client_id,
+        rt,
+        local: Some(Local { store, tasks }),
+    };
+    py.detach(|| stream.reopen())
+        .map_err(|s| status_error(&s))?;
+    Ok(NativeStream::new(
+        Transport::Engine(stream),
+        &opened,
+        num_envs as usize,
+    ))
 }
 
 fn encode(msg: &impl Message) -> Vec<u8> {
@@ -163,6 +235,7 @@ impl Engine {
             num_envs,
             client_id: client_id.to_string(),
             rt: self.rt,
+            local: None,
         };
         py.detach(|| stream.reopen())
             .map_err(|s| status_error(&s))?;
@@ -206,13 +279,28 @@ impl EngineStream {
             return Err(Status::cancelled("the session is closed"));
         };
         let rt = self.rt;
-        let shaped = rt.block_on(session.step(&batch.batch()))?;
-        Ok(Answer::from_outputs(shaped.outputs, shaped.pool_version))
+        match rt.block_on(session.step(&batch.batch())) {
+            Ok(shaped) => Ok(Answer::from_outputs(shaped.outputs, shaped.pool_version)),
+            // A local session's commit that the server refused: the server's status.
+            Err(e) => Err(self
+                .local
+                .as_ref()
+                .and_then(|l| l.store.take_failure())
+                .unwrap_or_else(|| e.into())),
+        }
     }
 
-    /// Ends the session: its episodes in progress are discarded.
+    /// Ends the session: its episodes in progress are discarded. A local session reports
+    /// the steps it shaped since its last message first.
     pub fn close(&mut self) {
         self.session = None;
+        if self.local.is_some() {
+            let registry = &self.registry;
+            let _ = self.rt.block_on(tokio::time::timeout(
+                CLOSE_REPORT,
+                registry.flush_counters(),
+            ));
+        }
     }
 
     /// (Re-)opens the session with new episodes everywhere.

@@ -3,7 +3,9 @@
 //! One session implementation ([`stream::NativeStream`]) over two transports:
 //! - the embedded [`engine::Engine`]: the server's own registry, stores and session layer
 //!   in-process (no socket), for `tamrm.Engine`;
-//! - a tonic gRPC channel ([`remote::Channel`]), for `tamrm.Client`.
+//! - a tonic gRPC channel ([`remote::Channel`]), for `tamrm.Client`;
+//! - local sessions of a `tamrm.Client` (SPEC §13): the embedded engine's session layer
+//!   over a store that follows the server's pool ([`follow::FollowStore`]).
 //!
 //! The Python package (`tamrm._session`, `tamrm._client`, `tamrm._engine`) checks argument
 //! types and shapes and turns answers into its dataclasses; everything per entry (range and
@@ -12,6 +14,7 @@
 
 mod columns;
 mod engine;
+mod follow;
 mod mlp;
 mod options;
 mod remote;

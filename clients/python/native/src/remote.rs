@@ -32,14 +32,16 @@ const MAX_RECEIVE: usize = 256 * 1024 * 1024;
 const SIGNAL_CHECK: Duration = Duration::from_millis(100);
 
 /// One server address of a channel, connected lazily.
-struct Target {
+pub(crate) struct Target {
     /// The address as given (for messages).
     name: String,
-    endpoint: Endpoint,
+    pub(crate) endpoint: Endpoint,
     /// For `unix:PATH`: the socket (the endpoint's URI is a placeholder then).
     unix: Option<std::path::PathBuf>,
     channel: TonicChannel,
-    client: ShapingClient<TonicChannel>,
+    /// A client on the channel shared by the unary calls (its connection runs on the
+    /// module's runtime).
+    pub(crate) client: ShapingClient<TonicChannel>,
 }
 
 impl Target {
@@ -52,29 +54,39 @@ impl Target {
 /// The addresses of a channel and the one in use: calls and streams go to the current
 /// address and move on to the next when it cannot be reached (SPEC §9, §10: any replica
 /// serves any task).
-struct Targets {
+pub(crate) struct Targets {
     list: Vec<Target>,
     current: AtomicUsize,
 }
 
 impl Targets {
-    fn current(&self) -> usize {
+    pub(crate) fn current(&self) -> usize {
         self.current.load(Ordering::Relaxed) % self.list.len()
     }
 
-    fn get(&self, i: usize) -> &Target {
+    /// Makes address `i` the one to use first.
+    pub(crate) fn set_current(&self, i: usize) {
+        self.current.store(i, Ordering::Relaxed);
+    }
+
+    /// How many addresses.
+    pub(crate) fn len(&self) -> usize {
+        self.list.len()
+    }
+
+    pub(crate) fn get(&self, i: usize) -> &Target {
         &self.list[i % self.list.len()]
     }
 
     /// The order to try the addresses in after address `failed` failed: every other one,
     /// then `failed` itself last.
-    fn after(&self, failed: usize) -> impl Iterator<Item = usize> {
+    pub(crate) fn after(&self, failed: usize) -> impl Iterator<Item = usize> {
         let n = self.list.len();
         (1..=n).map(move |k| (failed + k) % n)
     }
 
     /// All addresses, for messages.
-    fn names(&self) -> String {
+    pub(crate) fn names(&self) -> String {
         let names: Vec<&str> = self.list.iter().map(|t| t.name.as_str()).collect();
         names.join(", ")
     }
@@ -100,7 +112,7 @@ fn client(channel: TonicChannel) -> ShapingClient<TonicChannel> {
         .max_encoding_message_size(MAX_SEND)
 }
 
-fn request<T>(msg: T, metadata: &MetadataMap, timeout: Option<Duration>) -> Request<T> {
+pub(crate) fn request<T>(msg: T, metadata: &MetadataMap, timeout: Option<Duration>) -> Request<T> {
     let mut req = Request::new(msg);
     *req.metadata_mut() = metadata.clone();
     if let Some(t) = timeout {
@@ -514,6 +526,27 @@ impl Channel {
         })
     }
 
+    /// Opens a local session (SPEC §13): a `Follow` stream on `task_id`, and the steps
+    /// of `num_envs` environments shaped in-process against the followed pool.
+    fn follow(
+        &self,
+        py: Python<'_>,
+        task_id: &str,
+        num_envs: u32,
+        client_id: &str,
+    ) -> PyResult<NativeStream> {
+        let conn = crate::follow::Connection {
+            targets: self.targets.clone(),
+            metadata: self.metadata.clone(),
+            tls: self.tls,
+            resume_timeout: self.resume_timeout,
+            task_id: task_id.to_string(),
+            num_envs,
+            client_id: client_id.to_string(),
+        };
+        crate::engine::local_session(py, self.rt, conn)
+    }
+
     /// Opens a `Shape` stream on `task_id` for `num_envs` environments.
     fn open(
         &self,
@@ -921,14 +954,14 @@ impl Driver {
 }
 
 /// The first wait before resuming a broken session; it doubles up to [`MAX_PAUSE`].
-const FIRST_PAUSE: Duration = Duration::from_millis(50);
+pub(crate) const FIRST_PAUSE: Duration = Duration::from_millis(50);
 /// The longest wait between two attempts to resume.
-const MAX_PAUSE: Duration = Duration::from_secs(2);
+pub(crate) const MAX_PAUSE: Duration = Duration::from_secs(2);
 
 /// Whether a failed step is worth resuming: the server is unreachable or going away
 /// (UNAVAILABLE), or the connection broke under the stream (a transport error). Every
 /// answer of the server itself (a rejected batch, a deleted task, a quota) is final.
-fn resumable(s: &Status) -> bool {
+pub(crate) fn resumable(s: &Status) -> bool {
     match s.code() {
         Code::Unavailable => true,
         Code::Unknown | Code::Internal | Code::Cancelled => {
@@ -938,7 +971,7 @@ fn resumable(s: &Status) -> bool {
     }
 }
 
-fn connect_error(target: &str, tls: bool, s: Status) -> Status {
+pub(crate) fn connect_error(target: &str, tls: bool, s: Status) -> Status {
     if std::error::Error::source(&s).is_some() {
         transport_error(target, tls, s)
     } else if s.code() == Code::Unavailable || s.code() == Code::Unknown {

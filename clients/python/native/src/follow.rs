@@ -1,0 +1,656 @@
+//! Local sessions (SPEC §13): the embedded engine's session layer over a [`FollowStore`],
+//! a store that follows one task of a server through a `Follow` stream.
+//!
+//! The learner's steps are shaped in-process, against the followed copy of the pool, by
+//! the same `StreamSession` as `tamrm.Engine`'s; only its episode ends cross the network.
+//! The store is the seam: a commit sends the ends (with the steps shaped since the last
+//! message) and returns the pool the server made of them, exactly as a store shared by
+//! several servers does (`RedisStore`), so a learner alone gets the values a `Shape`
+//! stream returns, bit for bit; the changes others make arrive as updates, which the
+//! registry publishes (`Registry::watch_changes`) so that the next step sees them.
+//!
+//! One driver task per store owns the stream: it sends the queued messages, applies the
+//! snapshot and updates to the followed pool, hands each ack to the commit waiting for
+//! it, keeps a quiet stream open, and when the stream breaks it re-opens one (with
+//! failover over the channel's addresses and backoff, for up to `resume_timeout_secs`),
+//! takes the fresh snapshot, and re-sends every message not acknowledged: the server
+//! commits no end twice for the session's client id (SPEC §9).
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use parking_lot::Mutex;
+use tamrm::core::{ActionCount, ActionSeq, Pool, TaskConfig, Trajectory};
+use tamrm::proto::{self, follow_request, follow_response};
+use tamrm::service::convert::config_input;
+use tamrm::store::{Committed, Counters, PoolChanged, PoolOp, Store, StoreError, StoredTask};
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::metadata::MetadataMap;
+use tonic::{Code, Status, Streaming};
+
+use crate::remote::{connect_error, request, resumable, Targets, FIRST_PAUSE, MAX_PAUSE};
+
+/// How long a follow stream may stay without a message from the learner before the
+/// driver sends an empty one (servers close streams idle for `stream_idle_timeout_secs`,
+/// 600 s by default).
+const KEEPALIVE: Duration = Duration::from_secs(20);
+
+/// What a commit (or a steps report) waits for: the ack and the followed pool then.
+type Reply = oneshot::Sender<Result<(proto::EndsAck, Arc<Pool>), Status>>;
+
+/// One message for the server.
+struct Outgoing {
+    msg: proto::EpisodeEnds,
+    /// `None` for a message nobody waits for (a steps report, a keepalive).
+    reply: Option<Reply>,
+}
+
+/// What the store and its driver share.
+struct Shared {
+    /// The task's key in the local registry (its id: the default tenant).
+    key: String,
+    config: TaskConfig,
+    /// The followed pool: the server's, as of the last update received.
+    pool: Mutex<Arc<Pool>>,
+    changes: broadcast::Sender<PoolChanged>,
+    /// The status of the last failure the server answered, for the session's error.
+    failure: Mutex<Option<Status>>,
+    /// Why the driver ended, if the server refused the stream for good.
+    ended: Mutex<Option<Status>>,
+}
+
+impl Shared {
+    fn set_pool(&self, pool: Pool) {
+        let version = pool.version();
+        *self.pool.lock() = Arc::new(pool);
+        let _ = self.changes.send(PoolChanged {
+            task: self.key.clone(),
+            version,
+            deleted: false,
+        });
+    }
+}
+
+/// Where and how the driver connects.
+pub(crate) struct Connection {
+    pub targets: Arc<Targets>,
+    pub metadata: MetadataMap,
+    pub tls: bool,
+    pub resume_timeout: Option<Duration>,
+    pub task_id: String,
+    pub num_envs: u32,
+    pub client_id: String,
+}
+
+/// A store that follows one task of a server (SPEC §13).
+pub(crate) struct FollowStore {
+    shared: Arc<Shared>,
+    outgoing: mpsc::UnboundedSender<Outgoing>,
+    /// Steps reported to the server so far (the local task's count at the last message).
+    reported: Mutex<u64>,
+    /// The opened task as the server answered it.
+    opened: proto::Task,
+    description: String,
+}
+
+fn pool_from(config: &TaskConfig, p: proto::Pool) -> Result<Pool, Status> {
+    let trajectories = p
+        .trajectories
+        .into_iter()
+        .map(|t| trajectory_from(config, t))
+        .collect::<Result<Vec<_>, _>>()?;
+    Pool::restore(
+        config.pool_capacity as usize,
+        trajectories,
+        p.pool_version,
+        p.next_seq,
+    )
+    .map_err(|e| Status::internal(format!("the server's pool snapshot is malformed: {e}")))
+}
+
+fn trajectory_from(config: &TaskConfig, t: proto::Trajectory) -> Result<Trajectory, Status> {
+    let actions = config
+        .action_space
+        .to_seq(t.actions, t.action_vectors, ActionCount::AtLeastOne)
+        .map_err(|e| {
+            Status::internal(format!(
+                "the server sent a malformed trajectory (seq {}): {}",
+                t.seq, e.message
+            ))
+        })?;
+    Ok(Trajectory {
+        actions,
+        score: t.score,
+        seq: t.seq,
+    })
+}
+
+/// The pool after an update, or an error if it does not apply to `pool`.
+fn updated(config: &TaskConfig, pool: &Pool, u: proto::PoolUpdate) -> Result<Pool, Status> {
+    if u.base_version != pool.version() {
+        return Err(Status::internal(format!(
+            "the server sent an update from version {} to a copy at version {}",
+            u.base_version,
+            pool.version()
+        )));
+    }
+    let added = u
+        .added
+        .into_iter()
+        .map(|t| trajectory_from(config, t).map(Arc::new))
+        .collect::<Result<Vec<_>, _>>()?;
+    pool.with_update(&u.removed, added, u.pool_version, u.next_seq)
+        .map_err(|e| Status::internal(format!("the server's pool update is malformed: {e}")))
+}
+
+/// An open Follow stream: its sender and what it receives.
+struct Stream {
+    tx: mpsc::Sender<proto::FollowRequest>,
+    inbound: Streaming<proto::FollowResponse>,
+}
+
+fn ends_request(msg: proto::EpisodeEnds) -> proto::FollowRequest {
+    proto::FollowRequest {
+        kind: Some(follow_request::Kind::Ends(msg)),
+    }
+}
+
+/// One of the first messages of a Follow stream (the stream must not end before them).
+async fn first_messages(
+    inbound: &mut Streaming<proto::FollowResponse>,
+    target: &str,
+    tls: bool,
+) -> Result<follow_response::Kind, Status> {
+    match inbound.message().await {
+        Ok(Some(proto::FollowResponse { kind: Some(kind) })) => Ok(kind),
+        Ok(_) => Err(Status::unavailable(
+            "the server ended the Follow stream before sending the pool",
+        )),
+        Err(s) => Err(connect_error(target, tls, s)),
+    }
+}
+
+impl Connection {
+    /// Opens a Follow stream on address `at`: the opened task and the pool snapshot.
+    async fn open_at(&self, at: usize) -> Result<(Stream, proto::Task, proto::Pool), Status> {
+        let target = self.targets.get(at);
+        let name = target.endpoint.uri().to_string();
+        let (tx, rx) = mpsc::channel(16);
+        let open = proto::FollowRequest {
+            kind: Some(follow_request::Kind::Open(proto::FollowOpen {
+                task_id: self.task_id.clone(),
+                num_envs: self.num_envs,
+                client_id: self.client_id.clone(),
+            })),
+        };
+        tx.send(open)
+            .await
+            .map_err(|_| Status::internal("the stream's sender closed"))?;
+        let mut client = target.client.clone();
+        let req = request(ReceiverStream::new(rx), &self.metadata, None);
+        let mut inbound = client
+            .follow(req)
+            .await
+            .map_err(|s| connect_error(&name, self.tls, s))?
+            .into_inner();
+        let task = match first_messages(&mut inbound, &name, self.tls).await? {
+            follow_response::Kind::Opened(task) => task,
+            _ => {
+                return Err(Status::internal(
+                    "expected 'opened' first on a Follow stream",
+                ))
+            }
+        };
+        let pool = match first_messages(&mut inbound, &name, self.tls).await? {
+            follow_response::Kind::Snapshot(pool) => pool,
+            _ => {
+                return Err(Status::internal(
+                    "expected the pool's snapshot after 'opened'",
+                ))
+            }
+        };
+        Ok((Stream { tx, inbound }, task, pool))
+    }
+
+    /// Opens a stream on the current address or, failing that, on the next ones that
+    /// answer, retrying with backoff for up to `resume_timeout` (once without one).
+    async fn open(&self) -> Result<(Stream, proto::Task, proto::Pool), Status> {
+        let deadline = self.resume_timeout.map(|t| Instant::now() + t);
+        let mut pause = FIRST_PAUSE;
+        let mut at = self.targets.current();
+        loop {
+            let mut failure = None;
+            for i in std::iter::once(at).chain(self.targets.after(at).take(self.targets.len() - 1))
+            {
+                match self.open_at(i).await {
+                    Ok(opened) => {
+                        self.targets.set_current(i);
+                        return Ok(opened);
+                    }
+                    Err(s) if resumable(&s) => failure = Some(s),
+                    Err(s) => return Err(s),
+                }
+            }
+            let failure = failure.unwrap_or_else(|| Status::unavailable("no server"));
+            match deadline {
+                Some(d) if Instant::now() + pause < d => {}
+                _ => {
+                    return Err(Status::unavailable(format!(
+                        "no server answered the Follow stream of task {:?} ({}): {}",
+                        self.task_id,
+                        self.targets.names(),
+                        failure.message()
+                    )))
+                }
+            }
+            tokio::time::sleep(pause).await;
+            pause = (pause * 2).min(MAX_PAUSE);
+            at = self.targets.current();
+        }
+    }
+}
+
+impl FollowStore {
+    /// Opens the Follow stream (on `rt`, the module's runtime) and starts its driver.
+    pub(crate) fn open(
+        rt: &tokio::runtime::Runtime,
+        conn: Connection,
+    ) -> Result<FollowStore, Status> {
+        let (stream, opened, snapshot) = rt.block_on(conn.open())?;
+        let input = config_input(opened.config.as_ref());
+        let config = TaskConfig::resolve(&input).map_err(|e| {
+            Status::internal(format!(
+                "the server sent a task config this client rejects: {e}"
+            ))
+        })?;
+        let pool = pool_from(&config, snapshot)?;
+        let (changes, _) = broadcast::channel(64);
+        let shared = Arc::new(Shared {
+            key: conn.task_id.clone(),
+            config,
+            pool: Mutex::new(Arc::new(pool)),
+            changes,
+            failure: Mutex::new(None),
+            ended: Mutex::new(None),
+        });
+        let (outgoing, queued) = mpsc::unbounded_channel();
+        let description = format!(
+            "following task {:?} on {}",
+            conn.task_id,
+            conn.targets.names()
+        );
+        rt.spawn(drive(conn, shared.clone(), stream, queued));
+        Ok(FollowStore {
+            shared,
+            outgoing,
+            reported: Mutex::new(0),
+            opened,
+            description,
+        })
+    }
+
+    /// The task as the server answered `open`.
+    pub(crate) fn opened(&self) -> &proto::Task {
+        &self.opened
+    }
+
+    /// The status the server failed the last message with, if any (taken).
+    pub(crate) fn take_failure(&self) -> Option<Status> {
+        self.shared.failure.lock().take()
+    }
+
+    /// The message reporting the steps shaped since the last one, with `ends`.
+    fn message(&self, ends: Vec<proto::EpisodeEnd>, counters: Counters) -> proto::EpisodeEnds {
+        let mut reported = self.reported.lock();
+        let steps = counters.steps_shaped.saturating_sub(*reported);
+        *reported = (*reported).max(counters.steps_shaped);
+        proto::EpisodeEnds { ends, steps }
+    }
+
+    /// Sends `msg` and waits for its ack.
+    async fn send(
+        &self,
+        msg: proto::EpisodeEnds,
+    ) -> Result<(proto::EndsAck, Arc<Pool>), StoreError> {
+        let (reply, answer) = oneshot::channel();
+        let gone = || StoreError::Unavailable {
+            what: self.description.clone(),
+            message: "the follow stream has ended".into(),
+        };
+        let ended = || match self.shared.ended.lock().clone() {
+            Some(status) => self.failed(status),
+            None => gone(),
+        };
+        self.outgoing
+            .send(Outgoing {
+                msg,
+                reply: Some(reply),
+            })
+            .map_err(|_| ended())?;
+        match answer.await {
+            Ok(Ok(answer)) => Ok(answer),
+            Ok(Err(status)) => Err(self.failed(status)),
+            Err(_) => Err(ended()),
+        }
+    }
+
+    /// A failure as the store reports it; the status itself is kept for the session.
+    fn failed(&self, status: Status) -> StoreError {
+        let e = match status.code() {
+            Code::NotFound => StoreError::Gone {
+                task: self.shared.key.clone(),
+            },
+            Code::Unavailable => StoreError::Unavailable {
+                what: self.description.clone(),
+                message: status.message().to_string(),
+            },
+            _ => StoreError::Io {
+                path: self.description.clone().into(),
+                message: status.message().to_string(),
+            },
+        };
+        *self.shared.failure.lock() = Some(status);
+        e
+    }
+
+    fn refused(&self, what: &str) -> StoreError {
+        StoreError::Io {
+            path: self.description.clone().into(),
+            message: format!("{what} is not done through a local session: call the server"),
+        }
+    }
+
+    fn stored(&self) -> StoredTask {
+        StoredTask {
+            id: self.shared.key.clone(),
+            config: self.shared.config,
+            pool: (**self.shared.pool.lock()).clone(),
+            counters: Counters::default(),
+        }
+    }
+}
+
+/// One episode end as the proto's `EpisodeEnd`.
+fn end_proto(op: PoolOp) -> Result<proto::EpisodeEnd, Status> {
+    let PoolOp::Offer {
+        actions,
+        score,
+        end: Some(mark),
+    } = op
+    else {
+        return Err(Status::internal(
+            "a local session commits only the episode ends of a named client",
+        ));
+    };
+    let (actions, action_vectors) = match actions {
+        ActionSeq::Discrete(v) => (v, Vec::new()),
+        ActionSeq::Continuous { data, .. } => (Vec::new(), data),
+    };
+    Ok(proto::EpisodeEnd {
+        env_id: mark.env,
+        episode: mark.episode,
+        actions,
+        action_vectors,
+        score: Some(score),
+        reward_sum: score,
+    })
+}
+
+#[async_trait::async_trait]
+impl Store for FollowStore {
+    fn describe(&self) -> String {
+        self.description.clone()
+    }
+
+    async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
+        Ok(vec![self.stored()])
+    }
+
+    async fn create_task(&self, _: &str, _: &TaskConfig) -> Result<Option<TaskConfig>, StoreError> {
+        Err(self.refused("creating a task"))
+    }
+
+    async fn delete_task(&self, _: &str) -> Result<(), StoreError> {
+        Err(self.refused("deleting a task"))
+    }
+
+    /// Sends the ends and the steps shaped since the last message, and answers the pool
+    /// the server made of them (with every change made before, by anyone).
+    async fn commit(
+        &self,
+        _: &str,
+        _: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<Committed, StoreError> {
+        let ends = ops
+            .into_iter()
+            .map(end_proto)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|s| self.failed(s))?;
+        let (ack, pool) = self.send(self.message(ends, counters)).await?;
+        Ok(Committed {
+            pool,
+            // A re-sent end (the stream broke before its ack) is the learner's own
+            // change, already in the pool: nothing to resume at the learner.
+            changed: ack.changed,
+            version: ack.pool_version,
+            resent: 0,
+        })
+    }
+
+    /// Reports the steps shaped since the last message and waits for the ack.
+    async fn save_counters(
+        &self,
+        _: &str,
+        _: Arc<Pool>,
+        counters: Counters,
+    ) -> Result<(), StoreError> {
+        self.send(self.message(Vec::new(), counters))
+            .await
+            .map(drop)
+    }
+
+    async fn load_pool(&self, _: &str) -> Result<Option<Pool>, StoreError> {
+        Ok(Some((**self.shared.pool.lock()).clone()))
+    }
+
+    fn changes(&self) -> Option<broadcast::Receiver<PoolChanged>> {
+        Some(self.shared.changes.subscribe())
+    }
+
+    /// Shared with the server: the registry reports steps every so often
+    /// (`sync_counters`) and takes the followed pool's updates.
+    fn is_shared(&self) -> bool {
+        true
+    }
+
+    async fn load_task(&self, id: &str) -> Result<Option<StoredTask>, StoreError> {
+        Ok((id == self.shared.key).then(|| self.stored()))
+    }
+
+    async fn task_ids(&self) -> Result<Option<Vec<String>>, StoreError> {
+        Ok(Some(vec![self.shared.key.clone()]))
+    }
+
+    /// Reports the steps shaped since the last message, without waiting.
+    async fn sync_counters(
+        &self,
+        _: &str,
+        counters: Counters,
+    ) -> Result<Option<Counters>, StoreError> {
+        let msg = self.message(Vec::new(), counters);
+        if msg.steps > 0 {
+            let _ = self.outgoing.send(Outgoing { msg, reply: None });
+        }
+        Ok(None)
+    }
+}
+
+/// What ended a connection of the driver.
+enum Broke {
+    /// The store was dropped and every message answered: done.
+    Done,
+    /// The stream broke: re-open and re-send.
+    Resume(Status),
+    /// The server refused the stream or a message for good.
+    Fail(Status),
+}
+
+/// Runs one connection until it breaks: sends `queued` messages, keeps `pending` (sent,
+/// not acknowledged) in order, applies the pool's snapshots and updates.
+async fn serve(
+    shared: &Shared,
+    stream: &mut Stream,
+    pending: &mut VecDeque<Outgoing>,
+    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
+) -> Broke {
+    let mut closing = false;
+    let mut last_sent = tokio::time::Instant::now();
+    loop {
+        if closing && pending.is_empty() {
+            return Broke::Done;
+        }
+        let keepalive = tokio::time::sleep_until(last_sent + KEEPALIVE);
+        tokio::select! {
+            out = queued.recv(), if !closing => match out {
+                Some(out) => {
+                    last_sent = tokio::time::Instant::now();
+                    let sent = stream.tx.send(ends_request(out.msg.clone())).await;
+                    pending.push_back(out);
+                    if sent.is_err() {
+                        return Broke::Resume(Status::unavailable("the follow stream closed"));
+                    }
+                }
+                None => closing = true,
+            },
+            msg = stream.inbound.message() => {
+                let kind = match msg {
+                    Ok(Some(proto::FollowResponse { kind: Some(kind) })) => kind,
+                    Ok(_) => return Broke::Resume(Status::unavailable("the server ended the follow stream")),
+                    Err(s) if resumable(&s) => return Broke::Resume(s),
+                    Err(s) => return Broke::Fail(s),
+                };
+                let applied = match kind {
+                    follow_response::Kind::Snapshot(p) => pool_from(&shared.config, p),
+                    follow_response::Kind::Update(u) => {
+                        let base = shared.pool.lock().clone();
+                        updated(&shared.config, &base, u)
+                    }
+                    follow_response::Kind::Ack(ack) => {
+                        let Some(out) = pending.pop_front() else {
+                            return Broke::Resume(Status::internal("an ack nobody waits for"));
+                        };
+                        if let Some(reply) = out.reply {
+                            let _ = reply.send(Ok((ack, shared.pool.lock().clone())));
+                        }
+                        continue;
+                    }
+                    follow_response::Kind::Opened(_) => {
+                        Err(Status::internal("a second 'opened' on a Follow stream"))
+                    }
+                };
+                match applied {
+                    Ok(pool) => shared.set_pool(pool),
+                    // A copy that no longer agrees: a new stream brings a snapshot.
+                    Err(s) => return Broke::Resume(s),
+                }
+            }
+            _ = keepalive, if !closing => {
+                last_sent = tokio::time::Instant::now();
+                let out = Outgoing { msg: proto::EpisodeEnds::default(), reply: None };
+                let sent = stream.tx.send(ends_request(out.msg.clone())).await;
+                pending.push_back(out);
+                if sent.is_err() {
+                    return Broke::Resume(Status::unavailable("the follow stream closed"));
+                }
+            }
+        }
+    }
+}
+
+/// The driver: serves connections until the store is dropped, re-opening broken ones.
+async fn drive(
+    conn: Connection,
+    shared: Arc<Shared>,
+    first: Stream,
+    mut queued: mpsc::UnboundedReceiver<Outgoing>,
+) {
+    let mut pending = VecDeque::new();
+    let mut stream = Some(first);
+    loop {
+        let mut current = match stream.take() {
+            Some(s) => s,
+            None => match conn.open().await {
+                Ok((s, _, snapshot)) => {
+                    match pool_from(&shared.config, snapshot) {
+                        Ok(pool) => shared.set_pool(pool),
+                        Err(status) => return fail_all(&shared, &mut pending, &mut queued, status),
+                    }
+                    let mut resent = true;
+                    for out in &pending {
+                        resent &= s.tx.send(ends_request(out.msg.clone())).await.is_ok();
+                    }
+                    if !resent {
+                        continue;
+                    }
+                    s
+                }
+                Err(status) => {
+                    // Nobody answered within resume_timeout: fail what waits; a later
+                    // commit tries again.
+                    fail_waiting(&mut pending, &mut queued, status);
+                    if queued.is_closed() && pending.is_empty() {
+                        return;
+                    }
+                    match queued.recv().await {
+                        Some(out) => {
+                            pending.push_back(out);
+                            continue;
+                        }
+                        None => return,
+                    }
+                }
+            },
+        };
+        match serve(&shared, &mut current, &mut pending, &mut queued).await {
+            Broke::Done => return,
+            Broke::Resume(status) => {
+                tracing::debug!(error = %status, "follow stream broke; re-opening it");
+            }
+            Broke::Fail(status) => return fail_all(&shared, &mut pending, &mut queued, status),
+        }
+    }
+}
+
+/// Answers every waiting message with `status` (the messages are dropped).
+fn fail_waiting(
+    pending: &mut VecDeque<Outgoing>,
+    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
+    status: Status,
+) {
+    while let Ok(out) = queued.try_recv() {
+        pending.push_back(out);
+    }
+    for out in pending.drain(..) {
+        if let Some(reply) = out.reply {
+            let _ = reply.send(Err(status.clone()));
+        }
+    }
+}
+
+/// Ends the driver: every message now and later fails with `status`.
+fn fail_all(
+    shared: &Shared,
+    pending: &mut VecDeque<Outgoing>,
+    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
+    status: Status,
+) {
+    tracing::debug!(error = %status, "follow stream refused");
+    *shared.ended.lock() = Some(status.clone());
+    fail_waiting(pending, queued, status.clone());
+    queued.close();
+    fail_waiting(pending, queued, status);
+}
