@@ -323,6 +323,15 @@ impl Shaping for Echo {
         });
         Ok(Response::new(ReceiverStream::new(rx)))
     }
+
+    type FollowStream = ReceiverStream<Result<proto::FollowResponse, Status>>;
+
+    async fn follow(
+        &self,
+        _: Request<Streaming<proto::FollowRequest>>,
+    ) -> Result<Response<Self::FollowStream>, Status> {
+        Err(Status::unimplemented("echo"))
+    }
 }
 
 /// One throughput window: `streams` streams of `envs` entries per batch, each on its
