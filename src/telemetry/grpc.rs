@@ -5,6 +5,17 @@
 //! trailers-only response (errors before or instead of a message), else from the
 //! trailers at the end of the body (so a stream is handled when it ends). A response
 //! body dropped before its end (the client went away) counts as `Canceled`.
+//!
+//! `grpc_server_msg_received_total` and `grpc_server_msg_sent_total` count the messages
+//! of each RPC as they pass through the layer: it wraps the request body and the response
+//! body and reads the 5-byte prefix of every length-prefixed gRPC message
+//! ([`MessageFrames`]), split anywhere across body frames or several in one. A message
+//! counts when its last byte passes (a request message when the handler reads it, a
+//! response message when the server writes it), so, as in go-grpc-prometheus, a unary
+//! call counts one received and, when it succeeds, one sent (a failed call answers with
+//! trailers only), and a stream one per message each way. The counters of an RPC are
+//! resolved when it starts; per body frame the cost is a few integer operations and, when
+//! a message ends in it, one counter addition.
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -141,6 +152,8 @@ pub(super) struct GrpcMetrics {
     started: Family<Method, Counter>,
     handled: Family<Handled, Counter>,
     seconds: Family<Method, Histogram, fn() -> Histogram>,
+    received: Family<Method, Counter>,
+    sent: Family<Method, Counter>,
 }
 
 impl GrpcMetrics {
@@ -149,6 +162,8 @@ impl GrpcMetrics {
             started: Family::default(),
             handled: Family::default(),
             seconds: Family::new_with_constructor(|| Histogram::new(HANDLING_BUCKETS)),
+            received: Family::default(),
+            sent: Family::default(),
         };
         registry.register(
             "grpc_server_started",
@@ -165,7 +180,103 @@ impl GrpcMetrics {
             "Time from an RPC's request to the end of its response (a stream's whole life)",
             m.seconds.clone(),
         );
+        registry.register(
+            "grpc_server_msg_received",
+            "gRPC messages received on the server (one per unary call, one per message a client streams)",
+            m.received.clone(),
+        );
+        registry.register(
+            "grpc_server_msg_sent",
+            "gRPC messages sent by the server (one per successful unary call, one per streamed response)",
+            m.sent.clone(),
+        );
         m
+    }
+}
+
+/// The length of a gRPC message's prefix: a compression flag and a big-endian `u32`
+/// length.
+const PREFIX: u8 = 5;
+
+/// Counts the whole gRPC messages in the data of a body: each is a [`PREFIX`] of 5 bytes
+/// and as many bytes as its length says, and either may be split anywhere across data
+/// frames. [`MessageFrames::feed`] reads only the prefixes (a payload is skipped in one
+/// step) and allocates nothing.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct MessageFrames {
+    /// Bytes of the current message's prefix seen: 0 to 4 while it is read, [`PREFIX`]
+    /// once the message's payload is being skipped.
+    prefix: u8,
+    /// While the prefix is read, the length bytes seen so far; then the payload bytes
+    /// still to come (never 0 in the payload: an empty message ends with its prefix).
+    len: u32,
+}
+
+impl MessageFrames {
+    /// Reads the next `data` of the body; returns how many messages ended in it.
+    fn feed(&mut self, mut data: &[u8]) -> u64 {
+        let mut ended = 0;
+        while !data.is_empty() {
+            if self.prefix == PREFIX {
+                // Skip the payload, or as much of it as this data holds.
+                let n = data.len().min(self.len as usize);
+                data = &data[n..];
+                self.len -= n as u32;
+                if self.len == 0 {
+                    ended += 1;
+                    self.prefix = 0;
+                }
+            } else if self.prefix == 0 && data.len() >= usize::from(PREFIX) {
+                // A whole prefix in this data (the usual case).
+                let len = u32::from_be_bytes([data[1], data[2], data[3], data[4]]);
+                data = &data[usize::from(PREFIX)..];
+                if len == 0 {
+                    ended += 1;
+                } else {
+                    self.len = len;
+                    self.prefix = PREFIX;
+                }
+            } else {
+                // A prefix split across data frames, one byte at a time (the first byte
+                // is the compression flag).
+                if self.prefix > 0 {
+                    self.len = self.len << 8 | u32::from(data[0]);
+                }
+                data = &data[1..];
+                self.prefix += 1;
+                if self.prefix == PREFIX && self.len == 0 {
+                    ended += 1;
+                    self.prefix = 0;
+                }
+            }
+        }
+        ended
+    }
+}
+
+/// One body's message count: its frames and the counter of its RPC's method.
+#[derive(Debug)]
+struct Messages {
+    counter: Counter,
+    frames: MessageFrames,
+}
+
+impl Messages {
+    fn new(family: &Family<Method, Counter>, method: &Method) -> Messages {
+        Messages {
+            counter: family.get_or_create_owned(method),
+            frames: MessageFrames::default(),
+        }
+    }
+
+    /// Counts the messages that end in a body frame (nothing for trailers).
+    fn frame<D: AsRef<[u8]>>(&mut self, frame: &http_body::Frame<D>) {
+        if let Some(data) = frame.data_ref() {
+            let ended = self.frames.feed(data.as_ref());
+            if ended > 0 {
+                self.counter.inc_by(ended);
+            }
+        }
     }
 }
 
@@ -178,8 +289,7 @@ struct Rpc {
 }
 
 impl Rpc {
-    fn start(metrics: Arc<Metrics>, path: &str) -> Rpc {
-        let method = methods().get(path).copied().unwrap_or(UNKNOWN);
+    fn start(metrics: Arc<Metrics>, method: Method) -> Rpc {
         metrics.grpc.started.get_or_create(&method).inc();
         Rpc {
             metrics,
@@ -245,7 +355,10 @@ pub struct GrpcMetricsService<S> {
 
 impl<S, ReqBody, ResBody> tower::Service<http::Request<ReqBody>> for GrpcMetricsService<S>
 where
-    S: tower::Service<http::Request<ReqBody>, Response = http::Response<ResBody>>,
+    S: tower::Service<
+        http::Request<MeteredRequestBody<ReqBody>>,
+        Response = http::Response<ResBody>,
+    >,
 {
     type Response = http::Response<MeteredBody<ResBody>>;
     type Error = S::Error;
@@ -256,13 +369,27 @@ where
     }
 
     fn call(&mut self, req: http::Request<ReqBody>) -> Self::Future {
-        let rpc = self
-            .metrics
-            .as_ref()
-            .map(|m| Rpc::start(m.clone(), req.uri().path()));
+        let (rpc, received, sent) = match &self.metrics {
+            Some(m) => {
+                let method = methods().get(req.uri().path()).copied().unwrap_or(UNKNOWN);
+                let received = Messages::new(&m.grpc.received, &method);
+                let sent = Messages::new(&m.grpc.sent, &method);
+                (
+                    Some(Rpc::start(m.clone(), method)),
+                    Some(received),
+                    Some(sent),
+                )
+            }
+            None => (None, None, None),
+        };
+        let req = req.map(|inner| MeteredRequestBody {
+            inner,
+            messages: received,
+        });
         ResponseFuture {
             inner: self.inner.call(req),
             rpc,
+            sent,
         }
     }
 }
@@ -273,6 +400,7 @@ pin_project_lite::pin_project! {
         #[pin]
         inner: F,
         rpc: Option<Rpc>,
+        sent: Option<Messages>,
     }
 }
 
@@ -296,7 +424,8 @@ where
                     }
                     (rpc, _) => rpc,
                 };
-                Ok(res.map(|inner| MeteredBody { inner, rpc }))
+                let sent = this.sent.take();
+                Ok(res.map(|inner| MeteredBody { inner, rpc, sent }))
             }
             Err(e) => {
                 if let Some(rpc) = rpc {
@@ -309,16 +438,21 @@ where
 }
 
 pin_project_lite::pin_project! {
-    /// A response body that records its RPC as handled when its trailers arrive (or when
-    /// it ends or is dropped without them).
+    /// A response body that counts the messages it sends and records its RPC as handled
+    /// when its trailers arrive (or when it ends or is dropped without them).
     pub struct MeteredBody<B> {
         #[pin]
         inner: B,
         rpc: Option<Rpc>,
+        sent: Option<Messages>,
     }
 }
 
-impl<B: http_body::Body> http_body::Body for MeteredBody<B> {
+impl<B> http_body::Body for MeteredBody<B>
+where
+    B: http_body::Body,
+    B::Data: AsRef<[u8]>,
+{
     type Data = B::Data;
     type Error = B::Error;
 
@@ -328,6 +462,9 @@ impl<B: http_body::Body> http_body::Body for MeteredBody<B> {
     ) -> Poll<Option<Result<http_body::Frame<B::Data>, B::Error>>> {
         let this = self.project();
         let frame = ready!(this.inner.poll_frame(cx));
+        if let (Some(sent), Some(Ok(f))) = (this.sent.as_mut(), &frame) {
+            sent.frame(f);
+        }
         if this.rpc.is_some() {
             let code = match &frame {
                 Some(Ok(f)) => f
@@ -341,6 +478,44 @@ impl<B: http_body::Body> http_body::Body for MeteredBody<B> {
                     rpc.finish(code);
                 }
             }
+        }
+        Poll::Ready(frame)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+pin_project_lite::pin_project! {
+    /// A request body that counts the messages the handler reads from it.
+    pub struct MeteredRequestBody<B> {
+        #[pin]
+        inner: B,
+        messages: Option<Messages>,
+    }
+}
+
+impl<B> http_body::Body for MeteredRequestBody<B>
+where
+    B: http_body::Body,
+    B::Data: AsRef<[u8]>,
+{
+    type Data = B::Data;
+    type Error = B::Error;
+
+    fn poll_frame(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<B::Data>, B::Error>>> {
+        let this = self.project();
+        let frame = ready!(this.inner.poll_frame(cx));
+        if let (Some(messages), Some(Ok(f))) = (this.messages.as_mut(), &frame) {
+            messages.frame(f);
         }
         Poll::Ready(frame)
     }
@@ -368,6 +543,8 @@ mod tests {
         );
         let get = m.get("/tamrm.v1.Shaping/GetTask").copied();
         assert_eq!(get.map(|s| s.grpc_type), Some("unary"));
+        let follow = m.get("/tamrm.v1.Shaping/Follow").copied();
+        assert_eq!(follow.map(|s| s.grpc_type), Some("bidi_stream"));
         let watch = m.get("/grpc.health.v1.Health/Watch").copied();
         assert_eq!(watch.map(|s| s.grpc_type), Some("server_stream"));
         assert!(m.contains_key("/grpc.reflection.v1.ServerReflection/ServerReflectionInfo"));
@@ -383,5 +560,163 @@ mod tests {
         assert_eq!(status_of(&h), Some("NotFound"));
         h.insert("grpc-status", http::HeaderValue::from_static("99"));
         assert_eq!(status_of(&h), Some("Unknown"));
+    }
+
+    /// `lens` as gRPC messages (flags alternating), and the offset just past each.
+    fn encode(lens: &[u32]) -> (Vec<u8>, Vec<usize>) {
+        let mut bytes = Vec::new();
+        let mut ends = Vec::new();
+        for (i, &len) in lens.iter().enumerate() {
+            bytes.push(u8::from(i % 2 == 1));
+            bytes.extend_from_slice(&len.to_be_bytes());
+            bytes.extend((0..len).map(|j| (j % 251) as u8));
+            ends.push(bytes.len());
+        }
+        (bytes, ends)
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 500, ..Default::default() })]
+
+        /// Cut anywhere (empty chunks too, and many cuts inside the prefixes), the
+        /// counter has counted, after each chunk, exactly the messages whose last byte it
+        /// has seen.
+        #[test]
+        fn message_frames_count_whole_messages_across_any_chunks(
+            lens in proptest::collection::vec(
+                proptest::prop_oneof![0u32..4, 0u32..300, 250u32..70_000],
+                0..12,
+            ),
+            cuts in proptest::collection::vec(
+                (
+                    proptest::prelude::any::<proptest::sample::Index>(),
+                    0usize..=usize::from(PREFIX),
+                    proptest::prelude::any::<bool>(),
+                ),
+                0..24,
+            ),
+        ) {
+            let (bytes, ends) = encode(&lens);
+            let starts: Vec<usize> = std::iter::once(0).chain(ends.iter().copied()).collect();
+            let mut cuts: Vec<usize> = cuts
+                .iter()
+                .map(|(at, into_prefix, anywhere)| {
+                    if *anywhere {
+                        at.index(bytes.len() + 1)
+                    } else {
+                        // Into the prefix of a message (or at the end).
+                        (at.get(&starts) + into_prefix).min(bytes.len())
+                    }
+                })
+                .collect();
+            cuts.push(bytes.len());
+            cuts.sort_unstable();
+            let mut frames = MessageFrames::default();
+            let (mut from, mut counted) = (0, 0u64);
+            for to in cuts {
+                counted += frames.feed(&bytes[from..to]);
+                from = to;
+                let whole = ends.iter().filter(|&&e| e <= to).count() as u64;
+                proptest::prop_assert_eq!(counted, whole, "after {} of {} bytes", to, bytes.len());
+            }
+            proptest::prop_assert_eq!(frames, MessageFrames::default(), "ends between messages");
+        }
+    }
+
+    #[test]
+    fn message_frames_read_prefixes_byte_by_byte_and_wait_for_the_payload() {
+        let (bytes, _) = encode(&[0, 3]);
+        let mut frames = MessageFrames::default();
+        let byte_by_byte: u64 = bytes.iter().map(|b| frames.feed(&[*b])).sum();
+        assert_eq!(byte_by_byte, 2, "an empty message and one of 3 bytes");
+        assert_eq!(
+            frames.feed(&[1, 1, 2, 3, 4]),
+            0,
+            "a prefix with no payload yet"
+        );
+        assert_eq!(frames.len, 0x0102_0304);
+        assert_eq!(frames.feed(&vec![0; 0x0102_0303]), 0, "one byte short");
+        assert_eq!(
+            frames.feed(&[0, 0, 0, 0, 0, 0]),
+            2,
+            "its last byte and an empty message"
+        );
+        assert_eq!(frames, MessageFrames::default());
+    }
+
+    /// Through the layer: a streaming call whose messages are split across request
+    /// frames, answered with two messages in one frame; then a failed unary call
+    /// (trailers only) on a path no service serves.
+    #[test]
+    fn the_layer_counts_request_and_response_messages() {
+        use http_body_util::BodyExt;
+        type Frames = http_body_util::StreamBody<
+            futures::stream::Iter<
+                std::vec::IntoIter<
+                    Result<http_body::Frame<bytes::Bytes>, std::convert::Infallible>,
+                >,
+            >,
+        >;
+        fn body(frames: Vec<http_body::Frame<bytes::Bytes>>) -> Frames {
+            http_body_util::StreamBody::new(futures::stream::iter(
+                frames.into_iter().map(Ok).collect::<Vec<_>>(),
+            ))
+        }
+        fn trailers(code: &'static str) -> http_body::Frame<bytes::Bytes> {
+            let mut t = http::HeaderMap::new();
+            t.insert("grpc-status", http::HeaderValue::from_static(code));
+            http_body::Frame::trailers(t)
+        }
+        // Reads the whole request, then answers two messages for a known method and
+        // UNIMPLEMENTED (trailers only) for any other.
+        async fn answer(
+            req: http::Request<MeteredRequestBody<Frames>>,
+        ) -> Result<http::Response<Frames>, std::convert::Infallible> {
+            let known = methods().contains_key(req.uri().path());
+            req.into_body().collect().await.unwrap();
+            Ok(if known {
+                let (two, _) = encode(&[2, 0]);
+                http::Response::new(body(vec![
+                    http_body::Frame::data(two.into()),
+                    trailers("0"),
+                ]))
+            } else {
+                let mut res = http::Response::new(body(vec![]));
+                res.headers_mut()
+                    .insert("grpc-status", http::HeaderValue::from_static("12"));
+                res
+            })
+        }
+        let metrics = Arc::new(Metrics::new());
+        let mut svc = tower::Layer::layer(
+            &GrpcMetricsLayer::new(Some(metrics.clone())),
+            tower::service_fn(answer),
+        );
+        let mut call = |path: &'static str, request: Vec<u8>, cut: usize| {
+            let req = http::Request::builder()
+                .uri(path)
+                .body(body(vec![
+                    http_body::Frame::data(bytes::Bytes::copy_from_slice(&request[..cut])),
+                    http_body::Frame::data(bytes::Bytes::copy_from_slice(&request[cut..])),
+                ]))
+                .unwrap();
+            let res = futures::executor::block_on(tower::Service::call(&mut svc, req)).unwrap();
+            futures::executor::block_on(res.into_body().collect()).unwrap();
+        };
+        let (three, _) = encode(&[7, 0, 40]);
+        call("/tamrm.v1.Shaping/Shape", three, 9);
+        let (one, _) = encode(&[5]);
+        call("/tamrm.v1.Shaping/Nope", one, 3);
+
+        let count = |family: &Family<Method, Counter>, path: &str| {
+            let method = methods().get(path).copied().unwrap_or(UNKNOWN);
+            family.get_or_create(&method).get()
+        };
+        let g = &metrics.grpc;
+        assert_eq!(count(&g.received, "/tamrm.v1.Shaping/Shape"), 3);
+        assert_eq!(count(&g.sent, "/tamrm.v1.Shaping/Shape"), 2);
+        assert_eq!(count(&g.received, "/tamrm.v1.Shaping/Nope"), 1);
+        assert_eq!(count(&g.sent, "/tamrm.v1.Shaping/Nope"), 0, "trailers only");
+        assert_eq!(count(&g.started, "/tamrm.v1.Shaping/Shape"), 1);
     }
 }

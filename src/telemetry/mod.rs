@@ -1,7 +1,8 @@
 //! Prometheus metrics (`tamrm serve --metrics-listen ADDR`, docs/deployment.md lists
 //! them): one [`Metrics`] per server, recorded by
 //! - [`GrpcMetricsLayer`], a tower layer around the whole gRPC router: every RPC's start,
-//!   end (with its final `grpc-status`) and duration;
+//!   end (with its final `grpc-status`) and duration, and the messages it received and
+//!   sent;
 //! - [`ShapeMetrics`], held by each open Shape stream: one batch's latency, entries and
 //!   episode ends, a few atomic operations per batch (nothing per entry);
 //! - [`MeteredStore`], a [`Store`](crate::store::Store) decorator: store commits' latency
@@ -29,7 +30,9 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::Histogram;
 
-pub use grpc::{GrpcMetricsLayer, GrpcMetricsService, MeteredBody, ResponseFuture};
+pub use grpc::{
+    GrpcMetricsLayer, GrpcMetricsService, MeteredBody, MeteredRequestBody, ResponseFuture,
+};
 pub use http::listen;
 pub use store::{metered, MeteredStore};
 

@@ -65,6 +65,16 @@ impl Metrics {
         ]
     }
 
+    /// (`grpc_server_msg_received_total`, `grpc_server_msg_sent_total`) of a method.
+    #[track_caller]
+    fn messages(&self, kind: &str, service: &str, method: &str) -> (f64, f64) {
+        let labels = Metrics::rpc(kind, service, method);
+        (
+            self.value("grpc_server_msg_received_total", &labels),
+            self.value("grpc_server_msg_sent_total", &labels),
+        )
+    }
+
     #[track_caller]
     fn handled(&self, kind: &str, service: &str, method: &str, code: &str) -> f64 {
         let mut labels = Metrics::rpc(kind, service, method);
@@ -107,6 +117,11 @@ async fn rpcs_and_shaping_move_the_counters() {
     assert_eq!(m.handled("unary", SHAPING, "GetTask", "NotFound"), 1.0);
     assert_eq!(m.handled("unary", SHAPING, "CreateTask", "OK"), 1.0);
     assert_eq!(m.value("grpc_server_handling_seconds_count", &get), 2.0);
+    assert_eq!(
+        m.messages("unary", SHAPING, "GetTask"),
+        (2.0, 1.0),
+        "a failed call answers with trailers only"
+    );
 
     // A Shape stream: 3 batches of 2 envs, 3 episode ends over 2 batches.
     let shape = Metrics::rpc("bidi_stream", SHAPING, "Shape");
@@ -133,6 +148,11 @@ async fn rpcs_and_shaping_move_the_counters() {
         m.value("tamrm_stream_bytes_reserved", &[]),
         (2 * (100_000 * 4 + 8 * 24) + tamrm::service::STREAM_WINDOW as usize) as f64,
         "2 envs of the default max_trajectory_len on a pool of 8, and the stream's window"
+    );
+    assert_eq!(
+        m.messages("bidi_stream", SHAPING, "Shape"),
+        (4.0, 4.0),
+        "Open and 3 batches, opened and 3 shaped"
     );
     let task = [("task", "m")];
     assert_eq!(m.value("tamrm_steps_shaped_total", &task), 6.0);
@@ -217,6 +237,64 @@ async fn rpcs_and_shaping_move_the_counters() {
         );
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
+    server.shutdown().await;
+}
+
+/// `grpc_server_msg_received_total` / `grpc_server_msg_sent_total`: one each per unary
+/// call, one per message each way on a stream, whatever the size of the messages (the batches
+/// here take more than one HTTP/2 frame each way).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn messages_are_counted_per_method() {
+    let server = start_server(None, |s| {
+        s.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    })
+    .await;
+    let maddr = server.metrics_addr().expect("metrics are on");
+    let mut c = connect(server.addr()).await;
+    let config = proto::TaskConfig {
+        max_trajectory_len: Some(64),
+        ..discrete(3, 8, 2, 0, 1)
+    };
+    create(&mut c, "msgs", config).await;
+    let m = scrape(maddr).await;
+    assert_eq!(m.messages("unary", SHAPING, "CreateTask"), (1.0, 1.0));
+    assert_eq!(
+        m.get(
+            "grpc_server_msg_received_total",
+            &Metrics::rpc("unary", SHAPING, "GetTask")
+        ),
+        None,
+        "a method not called yet has no series"
+    );
+
+    const N: usize = 5;
+    const ENVS: usize = 2_000; // a batch of ≈ 20 kB, a shaped batch of ≈ 50 kB: several frames
+    let (mut s, _) = Stream::open(&mut c, "msgs", ENVS as u32).await.unwrap();
+    for i in 0..N {
+        let actions: Vec<u32> = (0..ENVS).map(|e| ((e + i) % 3) as u32).collect();
+        let shaped = s
+            .step(batch(&actions, &[0.5; ENVS], &[false; ENVS]))
+            .await
+            .unwrap();
+        assert_eq!(shaped.rewards.len(), ENVS);
+    }
+    let want = (N + 1) as f64;
+    let m = scrape(maddr).await;
+    assert_eq!(
+        m.messages("bidi_stream", SHAPING, "Shape"),
+        (want, want),
+        "Open and {N} batches in, opened and {N} shaped out"
+    );
+    let mut rx = s.close();
+    assert!(rx.message().await.unwrap().is_none());
+    let m = scrape(maddr).await;
+    assert_eq!(m.handled("bidi_stream", SHAPING, "Shape", "OK"), 1.0);
+    assert_eq!(
+        m.messages("bidi_stream", SHAPING, "Shape"),
+        (want, want),
+        "the half-close and the trailers are no messages"
+    );
+    assert_eq!(m.messages("unary", SHAPING, "CreateTask"), (1.0, 1.0));
     server.shutdown().await;
 }
 
