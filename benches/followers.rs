@@ -141,7 +141,7 @@ async fn learner(
         .expect("follow")
         .into_inner();
     let mut pool: Option<Pool> = None;
-    let mut rng = Rng(0x9e37_79b9 ^ (id as u64 + 1) * 0x2545_f491);
+    let mut rng = Rng(0x9e37_79b9 ^ ((id as u64 + 1) * 0x2545_f491));
     let gap = |rng: &mut Rng| {
         // Exponential with mean `interval`.
         let u = (rng.below(1 << 20) as f64 + 0.5) / f64::from(1 << 20);
