@@ -277,6 +277,18 @@ impl FollowSession {
             .task
             .commit_ends(writer, ops, client.map(|c| (c, marks.as_slice())))
             .await?;
+        if committed.resent > 0 {
+            // Another server committed some of these ends after this stream learnt the
+            // client's record (SPEC §9): the store did not offer them again, but the ack
+            // cannot tell which they were. The others are committed; a new stream learns
+            // the record and answers the re-sent message with them resent.
+            return Err(Error::ResumeNeeded(format!(
+                "{} episode end(s) of this message were committed meanwhile by another \
+                 server for client {:?}: open a new stream and re-send the message",
+                committed.resent,
+                client.unwrap_or_default()
+            )));
+        }
         // The version after each offer: the commit's own changes end at `version`.
         let made = committed.changed.iter().filter(|&&c| c).count() as u64;
         let mut version = committed.version.saturating_sub(made);

@@ -146,6 +146,15 @@ async fn call(c: &mut Client, method: &str, key: Option<&str>, task: &str) -> Re
                 .await
                 .map(drop)
         }
+        "Follow" => {
+            let open = proto::FollowOpen {
+                task_id: id,
+                num_envs: 1,
+                client_id: String::new(),
+            };
+            let (mut f, _) = Follower::open_with(c, key, open).await?;
+            f.ends(vec![dend(0, 0, &[1], None, 1.0)], 1).await.map(drop)
+        }
         other => panic!("no such RPC {other}"),
     }
 }
@@ -418,6 +427,110 @@ async fn quotas_answer_resource_exhausted() {
     let five = batch(&[0; 5], &[1.0; 5], &[false; 5]);
     let e = step(&tx, &mut rx, five).await.unwrap_err();
     assert!(e.message().contains("can never fit"), "{}", e.message());
+    server.shutdown().await;
+}
+
+/// Follow streams count against `max_open_streams` with Shape streams, and the steps a
+/// follower reports against `max_steps_per_second`; a refused message commits nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn follow_streams_and_their_steps_count_against_the_quotas() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = key_file(
+        dir.path(),
+        &[("q", "writer")],
+        "[tenants.q]\nmax_open_streams = 1\nmax_steps_per_second = 4\n",
+    );
+    let server = start_server(None, |s| s.api_keys = Some(file)).await;
+    let mut c = connect(server.addr()).await;
+    let q = key("q", "writer");
+    call(&mut c, "CreateTask", Some(&q), "a").await.unwrap();
+    let open_msg = |client_id: &str| proto::FollowOpen {
+        task_id: "a".into(),
+        num_envs: 1,
+        client_id: client_id.into(),
+    };
+    let pool = |c: &mut Client| {
+        let mut c = c.clone();
+        let q = q.clone();
+        async move {
+            c.get_pool(with(
+                Some(&q),
+                proto::GetPoolRequest {
+                    task_id: "a".into(),
+                },
+            ))
+            .await
+            .unwrap()
+            .into_inner()
+        }
+    };
+    let steps_shaped = |c: &mut Client| {
+        let mut c = c.clone();
+        let q = q.clone();
+        async move {
+            c.get_task(with(
+                Some(&q),
+                proto::GetTaskRequest {
+                    task_id: "a".into(),
+                },
+            ))
+            .await
+            .unwrap()
+            .into_inner()
+            .stats
+            .unwrap()
+            .steps_shaped
+        }
+    };
+
+    // One stream at a time, whichever kind.
+    let (mut f, _) = Follower::open_with(&mut c, Some(&q), open_msg("one"))
+        .await
+        .unwrap();
+    let e = Follower::open_with(&mut c, Some(&q), open_msg("two"))
+        .await
+        .err()
+        .expect("a second stream is over the quota");
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(
+        e.message().contains("max_open_streams = 1"),
+        "{}",
+        e.message()
+    );
+    let e = open(&mut c, Some(&q), "a", 1).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+
+    // Reported steps: 4 per second; 4 then 4 more at once is over, and the refused
+    // message's end is not committed.
+    f.ends(vec![dend(0, 0, &[1], None, 1.0)], 4).await.unwrap();
+    let before = pool(&mut c).await;
+    f.send(ends_msg(vec![dend(0, 1, &[0], None, 9.0)], 4)).await;
+    let e = f.status().await;
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(
+        e.message().contains("max_steps_per_second = 4"),
+        "{}",
+        e.message()
+    );
+    assert_eq!(pool(&mut c).await, before);
+    assert_eq!(steps_shaped(&mut c).await, 4);
+
+    // The slot comes back when the stream ends; more steps than a second's worth never fit.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut f = loop {
+        match Follower::open_with(&mut c, Some(&q), open_msg("one")).await {
+            Ok((f, _)) => break f,
+            Err(e) if e.code() == Code::ResourceExhausted && Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(20)).await
+            }
+            Err(e) => panic!("the stream slot did not come back: {e:?}"),
+        }
+    };
+    f.send(ends_msg(Vec::new(), 5)).await;
+    let e = f.status().await;
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("can never fit"), "{}", e.message());
+    assert_eq!(steps_shaped(&mut c).await, 4);
     server.shutdown().await;
 }
 

@@ -6,7 +6,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use tamrm::proto::shaping_client::ShapingClient;
-use tamrm::proto::{self, shape_request, shape_response, ShapeRequest, ShapeResponse};
+use tamrm::proto::{
+    self, follow_request, follow_response, shape_request, shape_response, FollowRequest,
+    FollowResponse, ShapeRequest, ShapeResponse,
+};
 use tamrm::server::RunningServer;
 use tamrm::settings::Settings;
 use tokio::sync::mpsc;
@@ -209,6 +212,262 @@ impl Stream {
     pub fn close(self) -> Streaming<ShapeResponse> {
         drop(self.tx);
         self.rx
+    }
+}
+
+/// One open Follow stream (SPEC §13) with the learner's copy of the task's pool: the
+/// snapshot it opened with, every later snapshot and update applied as a learner must
+/// (an update only to the version it was made for: a gap panics).
+pub struct Follower {
+    pub tx: mpsc::Sender<FollowRequest>,
+    pub rx: Streaming<FollowResponse>,
+    /// The copy: the task id of the snapshot, the pool at the version last received.
+    pub pool: proto::Pool,
+    /// Updates and snapshots received (the opening snapshot included).
+    pub updates: Vec<proto::PoolUpdate>,
+    pub snapshots: usize,
+}
+
+/// `msg` with `authorization: Bearer <key>`, or without a credential.
+pub fn with_key<T>(key: Option<&str>, msg: T) -> tonic::Request<T> {
+    let mut r = tonic::Request::new(msg);
+    if let Some(k) = key {
+        r.metadata_mut()
+            .insert("authorization", format!("Bearer {k}").parse().unwrap());
+    }
+    r
+}
+
+/// A message of episode ends.
+pub fn ends_msg(ends: Vec<proto::EpisodeEnd>, steps: u64) -> FollowRequest {
+    FollowRequest {
+        kind: Some(follow_request::Kind::Ends(proto::EpisodeEnds {
+            ends,
+            steps,
+        })),
+    }
+}
+
+/// A discrete episode end: score unset unless `score` is.
+pub fn dend(
+    env_id: u32,
+    episode: u64,
+    actions: &[u32],
+    score: Option<f64>,
+    reward_sum: f64,
+) -> proto::EpisodeEnd {
+    proto::EpisodeEnd {
+        env_id,
+        episode,
+        actions: actions.to_vec(),
+        score,
+        reward_sum,
+        ..Default::default()
+    }
+}
+
+impl Follower {
+    /// Opens a Follow stream (no credential) and takes its `opened` task and snapshot.
+    pub async fn open(
+        client: &mut Client,
+        task_id: &str,
+        num_envs: u32,
+        client_id: &str,
+    ) -> Result<(Follower, proto::Task), tonic::Status> {
+        let open = proto::FollowOpen {
+            task_id: task_id.into(),
+            num_envs,
+            client_id: client_id.into(),
+        };
+        Follower::open_with(client, None, open).await
+    }
+
+    /// Opens a Follow stream with `key` and takes its `opened` task and snapshot.
+    pub async fn open_with(
+        client: &mut Client,
+        key: Option<&str>,
+        open: proto::FollowOpen,
+    ) -> Result<(Follower, proto::Task), tonic::Status> {
+        let task_id = open.task_id.clone();
+        let mut f = Follower::raw_with(client, key).await?;
+        f.send(FollowRequest {
+            kind: Some(follow_request::Kind::Open(open)),
+        })
+        .await;
+        let task = match f.rx.message().await? {
+            Some(FollowResponse {
+                kind: Some(follow_response::Kind::Opened(task)),
+            }) => task,
+            other => panic!("expected opened, got {other:?}"),
+        };
+        assert_eq!(task.task_id, task_id);
+        match f.rx.message().await? {
+            Some(FollowResponse {
+                kind: Some(follow_response::Kind::Snapshot(pool)),
+            }) => {
+                assert_eq!(pool.task_id, task_id);
+                f.pool = pool;
+                f.snapshots = 1;
+            }
+            other => panic!("expected the opening snapshot, got {other:?}"),
+        }
+        Ok((f, task))
+    }
+
+    /// A Follow stream on which nothing is sent yet.
+    pub async fn raw(client: &mut Client) -> Result<Follower, tonic::Status> {
+        Follower::raw_with(client, None).await
+    }
+
+    async fn raw_with(client: &mut Client, key: Option<&str>) -> Result<Follower, tonic::Status> {
+        let (tx, rx) = mpsc::channel(16);
+        let rx = client
+            .follow(with_key(key, ReceiverStream::new(rx)))
+            .await?
+            .into_inner();
+        Ok(Follower {
+            tx,
+            rx,
+            pool: proto::Pool::default(),
+            updates: Vec::new(),
+            snapshots: 0,
+        })
+    }
+
+    pub async fn send(&self, req: FollowRequest) {
+        // The server may already have closed the stream; the error shows up on recv.
+        let _ = self.tx.send(req).await;
+    }
+
+    pub async fn recv(&mut self) -> Result<Option<FollowResponse>, tonic::Status> {
+        self.rx.message().await
+    }
+
+    /// Applies a snapshot or an update to the copy, as a learner does; panics on anything
+    /// else, and on an update that does not fit the copy (a gap, a seq it does not hold,
+    /// one it holds added again).
+    pub fn apply(&mut self, kind: follow_response::Kind) {
+        match kind {
+            follow_response::Kind::Snapshot(pool) => {
+                assert!(
+                    pool.pool_version >= self.pool.pool_version,
+                    "a snapshot at {} after {}",
+                    pool.pool_version,
+                    self.pool.pool_version
+                );
+                assert!(pool.trajectories.windows(2).all(|w| w[0].seq < w[1].seq));
+                self.pool = pool;
+                self.snapshots += 1;
+            }
+            follow_response::Kind::Update(u) => {
+                assert_eq!(
+                    u.base_version, self.pool.pool_version,
+                    "an update from version {} to a copy at {}: a gap",
+                    u.base_version, self.pool.pool_version
+                );
+                assert!(u.pool_version > u.base_version, "{u:?}");
+                assert!(u.next_seq >= self.pool.next_seq, "{u:?}");
+                let trajs = &mut self.pool.trajectories;
+                for seq in &u.removed {
+                    let before = trajs.len();
+                    trajs.retain(|t| t.seq != *seq);
+                    assert_eq!(trajs.len() + 1, before, "removed seq {seq} is not held");
+                }
+                for t in &u.added {
+                    assert!(
+                        trajs.iter().all(|h| h.seq != t.seq),
+                        "added seq {} is already held",
+                        t.seq
+                    );
+                    assert!(t.seq < u.next_seq, "{u:?}");
+                    trajs.push(t.clone());
+                }
+                trajs.sort_by_key(|t| t.seq);
+                self.pool.pool_version = u.pool_version;
+                self.pool.next_seq = u.next_seq;
+                self.updates.push(u);
+            }
+            other => panic!("expected a snapshot or an update, got {other:?}"),
+        }
+    }
+
+    /// Receives until an ack, applying the news before it; checks that the copy then
+    /// holds at least the ack's version (its changes came first).
+    pub async fn ack(&mut self) -> Result<proto::EndsAck, tonic::Status> {
+        loop {
+            match self.rx.message().await? {
+                Some(FollowResponse {
+                    kind: Some(follow_response::Kind::Ack(ack)),
+                }) => {
+                    assert!(
+                        self.pool.pool_version >= ack.pool_version,
+                        "the ack at version {} came before the updates (copy at {})",
+                        ack.pool_version,
+                        self.pool.pool_version
+                    );
+                    return Ok(ack);
+                }
+                Some(FollowResponse { kind: Some(kind) }) => self.apply(kind),
+                other => panic!("expected an ack, got {other:?}"),
+            }
+        }
+    }
+
+    /// Sends one message of ends and returns its ack (the news before it applied).
+    pub async fn ends(
+        &mut self,
+        ends: Vec<proto::EpisodeEnd>,
+        steps: u64,
+    ) -> Result<proto::EndsAck, tonic::Status> {
+        self.send(ends_msg(ends, steps)).await;
+        self.ack().await
+    }
+
+    /// Applies news until the copy holds version `version` or later (within 10 s).
+    pub async fn until_version(&mut self, version: u64) {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        while self.pool.pool_version < version {
+            let msg = tokio::time::timeout_at(deadline, self.rx.message())
+                .await
+                .unwrap_or_else(|_| {
+                    panic!(
+                        "the follower stays at version {}, expected {version}",
+                        self.pool.pool_version
+                    )
+                });
+            match msg {
+                Ok(Some(FollowResponse { kind: Some(kind) })) => self.apply(kind),
+                other => panic!("expected news, got {other:?}"),
+            }
+        }
+    }
+
+    /// Nothing arrives for `quiet` (the server has nothing to send).
+    pub async fn assert_quiet(&mut self, quiet: Duration) {
+        if let Ok(msg) = tokio::time::timeout(quiet, self.rx.message()).await {
+            panic!("expected nothing, got {msg:?}");
+        }
+    }
+
+    /// The status the stream ends with (news before it applied), within 10 s.
+    pub async fn status(&mut self) -> tonic::Status {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        loop {
+            let msg = tokio::time::timeout_at(deadline, self.rx.message())
+                .await
+                .expect("the stream ends within 10 s");
+            match msg {
+                Err(status) => return status,
+                Ok(Some(FollowResponse {
+                    kind:
+                        Some(
+                            kind @ (follow_response::Kind::Snapshot(_)
+                            | follow_response::Kind::Update(_)),
+                        ),
+                })) => self.apply(kind),
+                other => panic!("expected an error status, got {other:?}"),
+            }
+        }
     }
 }
 

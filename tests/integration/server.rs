@@ -127,6 +127,7 @@ impl RefPool {
             task_id: task_id.into(),
             pool_version: self.version,
             trajectories: self.trajs.iter().map(traj_proto).collect(),
+            next_seq: self.next_seq,
         }
     }
 }
