@@ -296,10 +296,10 @@ impl EngineStream {
         self.session = None;
         if self.local.is_some() {
             let registry = &self.registry;
-            let _ = self.rt.block_on(tokio::time::timeout(
-                CLOSE_REPORT,
-                registry.flush_counters(),
-            ));
+            // The timer is made inside the runtime (it needs its time driver).
+            let _ = self.rt.block_on(async {
+                tokio::time::timeout(CLOSE_REPORT, registry.flush_counters()).await
+            });
         }
     }
 
