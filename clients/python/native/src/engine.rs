@@ -291,7 +291,7 @@ impl EngineStream {
     }
 
     /// Ends the session: its episodes in progress are discarded. A local session reports
-    /// the steps it shaped since its last message first.
+    /// the steps it shaped since its last message first, then ends its Follow stream.
     pub fn close(&mut self) {
         self.session = None;
         if self.local.is_some() {
@@ -301,11 +301,24 @@ impl EngineStream {
                 tokio::time::timeout(CLOSE_REPORT, registry.flush_counters()).await
             });
         }
+        if let Some(local) = &self.local {
+            local.store.stop();
+        }
     }
 
     /// (Re-)opens the session with new episodes everywhere.
     pub fn reopen(&mut self) -> Result<(), Status> {
         self.session = None;
+        if let Some(local) = &self.local {
+            // A closed local session follows the task again, from a fresh snapshot.
+            if let Some(pool) = local.store.restart(self.rt)? {
+                let registry = &self.registry;
+                let task = self
+                    .rt
+                    .block_on(registry.lookup(DEFAULT_TENANT, &self.task_id))?;
+                task.refresh(pool);
+            }
+        }
         let req = OpenRequest {
             tenant: DEFAULT_TENANT,
             task_id: &self.task_id,

@@ -14,7 +14,9 @@
 //! it, keeps a quiet stream open, and when the stream breaks it re-opens one (with
 //! failover over the channel's addresses and backoff, for up to `resume_timeout_secs`),
 //! takes the fresh snapshot, and re-sends every message not acknowledged: the server
-//! commits no end twice for the session's client id (SPEC §9).
+//! commits no end twice for the session's client id (SPEC §9). Closing the session ends
+//! the stream (as a remote session's `Shape` stream ends); re-opening it (`restart`)
+//! follows the task again from a fresh snapshot, with a new driver.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -87,7 +89,10 @@ pub(crate) struct Connection {
 /// A store that follows one task of a server (SPEC §13).
 pub(crate) struct FollowStore {
     shared: Arc<Shared>,
-    outgoing: mpsc::UnboundedSender<Outgoing>,
+    conn: Arc<Connection>,
+    /// The driver's queue; `None` while the session is closed ([`FollowStore::stop`]):
+    /// the driver then answers what it was sent and ends the stream.
+    outgoing: Mutex<Option<mpsc::UnboundedSender<Outgoing>>>,
     /// Steps reported to the server so far (the local task's count at the last message).
     reported: Mutex<u64>,
     /// The opened task as the server answered it.
@@ -267,6 +272,7 @@ impl FollowStore {
         })?;
         let pool = pool_from(&config, snapshot)?;
         let (changes, _) = broadcast::channel(64);
+        let conn = Arc::new(conn);
         let shared = Arc::new(Shared {
             key: conn.task_id.clone(),
             config,
@@ -281,10 +287,11 @@ impl FollowStore {
             conn.task_id,
             conn.targets.names()
         );
-        rt.spawn(drive(conn, shared.clone(), stream, queued));
+        rt.spawn(drive(conn.clone(), shared.clone(), stream, queued));
         Ok(FollowStore {
             shared,
-            outgoing,
+            conn,
+            outgoing: Mutex::new(Some(outgoing)),
             reported: Mutex::new(0),
             opened,
             description,
@@ -294,6 +301,37 @@ impl FollowStore {
     /// The task as the server answered `open`.
     pub(crate) fn opened(&self) -> &proto::Task {
         &self.opened
+    }
+
+    /// Ends the Follow stream (the session closed): the driver answers the messages it
+    /// was sent, then ends the stream, so the server no longer counts it open.
+    pub(crate) fn stop(&self) {
+        self.outgoing.lock().take();
+    }
+
+    /// Follows the task again after [`FollowStore::stop`] (the session re-opens): a new
+    /// stream and its driver. Answers the pool of its snapshot, for the registry to
+    /// publish before the session shapes; `None` if the stream was not stopped.
+    pub(crate) fn restart(&self, rt: &tokio::runtime::Runtime) -> Result<Option<Pool>, Status> {
+        // (The session's lock serializes restarts; the queue's is not held while the
+        // stream opens.)
+        if self.outgoing.lock().is_some() {
+            return Ok(None);
+        }
+        let (stream, _, snapshot) = rt.block_on(self.conn.open())?;
+        let pool = pool_from(&self.shared.config, snapshot)?;
+        *self.shared.ended.lock() = None;
+        *self.shared.failure.lock() = None;
+        let (sender, queued) = mpsc::unbounded_channel();
+        rt.spawn(drive(
+            self.conn.clone(),
+            self.shared.clone(),
+            stream,
+            queued,
+        ));
+        *self.outgoing.lock() = Some(sender);
+        self.shared.set_pool(pool.clone());
+        Ok(Some(pool))
     }
 
     /// The status the server failed the last message with, if any (taken).
@@ -323,7 +361,9 @@ impl FollowStore {
             Some(status) => self.failed(status),
             None => gone(),
         };
-        self.outgoing
+        let outgoing = self.outgoing.lock().clone();
+        outgoing
+            .ok_or_else(gone)?
             .send(Outgoing {
                 msg,
                 reply: Some(reply),
@@ -483,7 +523,9 @@ impl Store for FollowStore {
     ) -> Result<Option<Counters>, StoreError> {
         let msg = self.message(Vec::new(), counters);
         if msg.steps > 0 {
-            let _ = self.outgoing.send(Outgoing { msg, reply: None });
+            if let Some(outgoing) = &*self.outgoing.lock() {
+                let _ = outgoing.send(Outgoing { msg, reply: None });
+            }
         }
         Ok(None)
     }
@@ -571,9 +613,10 @@ async fn serve(
     }
 }
 
-/// The driver: serves connections until the store is dropped, re-opening broken ones.
+/// The driver: serves connections until the store is dropped or stopped, re-opening
+/// broken ones.
 async fn drive(
-    conn: Connection,
+    conn: Arc<Connection>,
     shared: Arc<Shared>,
     first: Stream,
     mut queued: mpsc::UnboundedReceiver<Outgoing>,
