@@ -63,6 +63,7 @@ def test_stubs_import_inside_the_package() -> None:
         "GetPool",
         "AddTrajectory",
         "Shape",
+        "Follow",
     ]
     # The stubs did not shadow or get shadowed by the client package.
     assert "tamrm.v1" not in sys.modules

@@ -432,8 +432,13 @@ class Pool(_message.Message):
     TASK_ID_FIELD_NUMBER: _builtins.int
     POOL_VERSION_FIELD_NUMBER: _builtins.int
     TRAJECTORIES_FIELD_NUMBER: _builtins.int
+    NEXT_SEQ_FIELD_NUMBER: _builtins.int
     task_id: _builtins.str
     pool_version: _builtins.int
+    next_seq: _builtins.int
+    """(v1.2) The seq the next stored trajectory gets (seqs are not reused after a reset):
+    what a follower needs to number its own planned inserts as the server will.
+    """
     @_builtins.property
     def trajectories(self) -> _containers.RepeatedCompositeFieldContainer[Global___Trajectory]:
         """Ordered by seq."""
@@ -444,10 +449,11 @@ class Pool(_message.Message):
         task_id: _builtins.str = ...,
         pool_version: _builtins.int = ...,
         trajectories: _abc.Iterable[Global___Trajectory] | None = ...,
+        next_seq: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["pool_version", b"pool_version", "task_id", b"task_id", "trajectories", b"trajectories"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["next_seq", b"next_seq", "pool_version", b"pool_version", "task_id", b"task_id", "trajectories", b"trajectories"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -833,3 +839,291 @@ class ShapedBatch(_message.Message):
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___ShapedBatch: _TypeAlias = ShapedBatch  # noqa: Y015
+
+@_typing.final
+class FollowRequest(_message.Message):
+    """One message of the Follow stream, client to server."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    OPEN_FIELD_NUMBER: _builtins.int
+    ENDS_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def open(self) -> Global___FollowOpen:
+        """Must be the first message, and only the first."""
+
+    @_builtins.property
+    def ends(self) -> Global___EpisodeEnds:
+        """Every later message: episode ends and the steps shaped since the last message."""
+
+    def __init__(
+        self,
+        *,
+        open: Global___FollowOpen | None = ...,
+        ends: Global___EpisodeEnds | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["ends", b"ends", "kind", b"kind", "open", b"open"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["ends", b"ends", "kind", b"kind", "open", b"open"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType_kind: _TypeAlias = _typing.Literal["open", "ends"]  # noqa: Y015
+    _WhichOneofArgType_kind: _TypeAlias = _typing.Literal["kind", b"kind"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType_kind) -> _WhichOneofReturnType_kind | None: ...
+
+Global___FollowRequest: _TypeAlias = FollowRequest  # noqa: Y015
+
+@_typing.final
+class FollowOpen(_message.Message):
+    """Opens a Follow stream on a task for the learner's `num_envs` environments."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    TASK_ID_FIELD_NUMBER: _builtins.int
+    NUM_ENVS_FIELD_NUMBER: _builtins.int
+    CLIENT_ID_FIELD_NUMBER: _builtins.int
+    task_id: _builtins.str
+    num_envs: _builtins.int
+    """Environments whose episode ends this stream reports, numbered 0..num_envs-1. >= 1."""
+    client_id: _builtins.str
+    """Names the client across its streams (SPEC §9; e.g. a UUID; empty: none). With it, an
+    end is identified by (client_id, env_id, episode) and committed at most once, so a
+    follower that lost its stream re-sends its unacknowledged ends on a new one safely.
+    """
+    def __init__(
+        self,
+        *,
+        task_id: _builtins.str = ...,
+        num_envs: _builtins.int = ...,
+        client_id: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["client_id", b"client_id", "num_envs", b"num_envs", "task_id", b"task_id"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___FollowOpen: _TypeAlias = FollowOpen  # noqa: Y015
+
+@_typing.final
+class EpisodeEnds(_message.Message):
+    """Episode ends shaped at the learner, and its step count. Validated whole before any of it
+    is applied: a rejected message commits nothing. An empty message (no ends, no steps)
+    keeps an idle stream open.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ENDS_FIELD_NUMBER: _builtins.int
+    STEPS_FIELD_NUMBER: _builtins.int
+    steps: _builtins.int
+    """Steps (environment steps) the client shaped since its previous message on the
+    stream: added to the task's steps_shaped.
+    """
+    @_builtins.property
+    def ends(self) -> _containers.RepeatedCompositeFieldContainer[Global___EpisodeEnd]:
+        """Applied in order, as the episode ends of one StepBatch are (SPEC §6)."""
+
+    def __init__(
+        self,
+        *,
+        ends: _abc.Iterable[Global___EpisodeEnd] | None = ...,
+        steps: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["ends", b"ends", "steps", b"steps"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___EpisodeEnds: _TypeAlias = EpisodeEnds  # noqa: Y015
+
+@_typing.final
+class EpisodeEnd(_message.Message):
+    """One finished episode."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ENV_ID_FIELD_NUMBER: _builtins.int
+    EPISODE_FIELD_NUMBER: _builtins.int
+    ACTIONS_FIELD_NUMBER: _builtins.int
+    ACTION_VECTORS_FIELD_NUMBER: _builtins.int
+    SCORE_FIELD_NUMBER: _builtins.int
+    REWARD_SUM_FIELD_NUMBER: _builtins.int
+    env_id: _builtins.int
+    """< FollowOpen.num_envs."""
+    episode: _builtins.int
+    """Episodes this environment ended before this one since the client first opened (0 for
+    the first), as in EnvResume.episode.
+    """
+    score: _builtins.float
+    """The episode score S if the client has one (SPEC §6); unset: `reward_sum` is used.
+    Finite.
+    """
+    reward_sum: _builtins.float
+    """Sum of the episode's environment rewards: the score when `score` is unset. Finite."""
+    @_builtins.property
+    def actions(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Discrete tasks: the recorded actions (at least one; past max_trajectory_len they are
+        truncated), each < num_actions.
+        """
+
+    @_builtins.property
+    def action_vectors(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """Continuous tasks: L x action_dim floats, row-major. Finite."""
+
+    def __init__(
+        self,
+        *,
+        env_id: _builtins.int = ...,
+        episode: _builtins.int = ...,
+        actions: _abc.Iterable[_builtins.int] | None = ...,
+        action_vectors: _abc.Iterable[_builtins.float] | None = ...,
+        score: _builtins.float | None = ...,
+        reward_sum: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_score", b"_score", "score", b"score"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_score", b"_score", "action_vectors", b"action_vectors", "actions", b"actions", "env_id", b"env_id", "episode", b"episode", "reward_sum", b"reward_sum", "score", b"score"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__score: _TypeAlias = _typing.Literal["score"]  # noqa: Y015
+    _WhichOneofArgType__score: _TypeAlias = _typing.Literal["_score", b"_score"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__score) -> _WhichOneofReturnType__score | None: ...
+
+Global___EpisodeEnd: _TypeAlias = EpisodeEnd  # noqa: Y015
+
+@_typing.final
+class FollowResponse(_message.Message):
+    """One message of the Follow stream, server to client."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    OPENED_FIELD_NUMBER: _builtins.int
+    SNAPSHOT_FIELD_NUMBER: _builtins.int
+    UPDATE_FIELD_NUMBER: _builtins.int
+    ACK_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def opened(self) -> Global___Task:
+        """Answers Open: the task (its resolved config and statistics) as the stream opens."""
+
+    @_builtins.property
+    def snapshot(self) -> Global___Pool:
+        """The whole pool: sent once after `opened`, and again instead of updates whenever that
+        is shorter (e.g. after a reset) or the client fell behind. Replaces the client's copy.
+        """
+
+    @_builtins.property
+    def update(self) -> Global___PoolUpdate:
+        """A change of the pool since the version the client holds."""
+
+    @_builtins.property
+    def ack(self) -> Global___EndsAck:
+        """Answers one EpisodeEnds message, in order."""
+
+    def __init__(
+        self,
+        *,
+        opened: Global___Task | None = ...,
+        snapshot: Global___Pool | None = ...,
+        update: Global___PoolUpdate | None = ...,
+        ack: Global___EndsAck | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["ack", b"ack", "kind", b"kind", "opened", b"opened", "snapshot", b"snapshot", "update", b"update"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["ack", b"ack", "kind", b"kind", "opened", b"opened", "snapshot", b"snapshot", "update", b"update"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType_kind: _TypeAlias = _typing.Literal["opened", "snapshot", "update", "ack"]  # noqa: Y015
+    _WhichOneofArgType_kind: _TypeAlias = _typing.Literal["kind", b"kind"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType_kind) -> _WhichOneofReturnType_kind | None: ...
+
+Global___FollowResponse: _TypeAlias = FollowResponse  # noqa: Y015
+
+@_typing.final
+class PoolUpdate(_message.Message):
+    """The net effect of one or more consecutive pool changes (SPEC §6: insert, replace,
+    reset), from `base_version` to `pool_version`. Apply it to a copy at `base_version`:
+    remove the trajectories with the `removed` seqs, add the `added` ones, then order the
+    pool by seq. A client holding another version must wait for a snapshot (it never gets
+    a gap: the server sends either the next update or a snapshot).
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    BASE_VERSION_FIELD_NUMBER: _builtins.int
+    POOL_VERSION_FIELD_NUMBER: _builtins.int
+    REMOVED_FIELD_NUMBER: _builtins.int
+    ADDED_FIELD_NUMBER: _builtins.int
+    NEXT_SEQ_FIELD_NUMBER: _builtins.int
+    base_version: _builtins.int
+    """The version the update applies to (the client's current version)."""
+    pool_version: _builtins.int
+    """The version after it (one more than base_version per change it carries)."""
+    next_seq: _builtins.int
+    """As Pool.next_seq, after the update."""
+    @_builtins.property
+    def removed(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Seqs of the trajectories removed (replaced, or reset away)."""
+
+    @_builtins.property
+    def added(self) -> _containers.RepeatedCompositeFieldContainer[Global___Trajectory]:
+        """Trajectories added, ordered by seq."""
+
+    def __init__(
+        self,
+        *,
+        base_version: _builtins.int = ...,
+        pool_version: _builtins.int = ...,
+        removed: _abc.Iterable[_builtins.int] | None = ...,
+        added: _abc.Iterable[Global___Trajectory] | None = ...,
+        next_seq: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["added", b"added", "base_version", b"base_version", "next_seq", b"next_seq", "pool_version", b"pool_version", "removed", b"removed"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PoolUpdate: _TypeAlias = PoolUpdate  # noqa: Y015
+
+@_typing.final
+class EndsAck(_message.Message):
+    """Answers one EpisodeEnds message: per end, in request order, what the pool made of it."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CHANGED_FIELD_NUMBER: _builtins.int
+    VERSIONS_FIELD_NUMBER: _builtins.int
+    RESENT_FIELD_NUMBER: _builtins.int
+    POOL_VERSION_FIELD_NUMBER: _builtins.int
+    pool_version: _builtins.int
+    """The pool version after the message's ends; every update up to it precedes this ack."""
+    @_builtins.property
+    def changed(self) -> _containers.RepeatedScalarFieldContainer[_builtins.bool]:
+        """The end changed the pool (inserted, or replaced the lowest score)."""
+
+    @_builtins.property
+    def versions(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """The pool version right after the end was decided: the version it produced if it
+        changed the pool.
+        """
+
+    @_builtins.property
+    def resent(self) -> _containers.RepeatedScalarFieldContainer[_builtins.bool]:
+        """The end had been committed before (re-sent after a lost answer, SPEC §9): not offered
+        again, not counted again.
+        """
+
+    def __init__(
+        self,
+        *,
+        changed: _abc.Iterable[_builtins.bool] | None = ...,
+        versions: _abc.Iterable[_builtins.int] | None = ...,
+        resent: _abc.Iterable[_builtins.bool] | None = ...,
+        pool_version: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["changed", b"changed", "pool_version", b"pool_version", "resent", b"resent", "versions", b"versions"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___EndsAck: _TypeAlias = EndsAck  # noqa: Y015

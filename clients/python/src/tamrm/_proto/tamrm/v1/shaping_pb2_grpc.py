@@ -76,6 +76,11 @@ class ShapingStub:
                 request_serializer=tamrm_dot_v1_dot_shaping__pb2.ShapeRequest.SerializeToString,
                 response_deserializer=tamrm_dot_v1_dot_shaping__pb2.ShapeResponse.FromString,
                 _registered_method=True)
+        self.Follow = channel.stream_stream(
+                '/tamrm.v1.Shaping/Follow',
+                request_serializer=tamrm_dot_v1_dot_shaping__pb2.FollowRequest.SerializeToString,
+                response_deserializer=tamrm_dot_v1_dot_shaping__pb2.FollowResponse.FromString,
+                _registered_method=True)
 
 
 class ShapingServicer:
@@ -145,6 +150,22 @@ class ShapingServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Follow(self, request_iterator, context):
+        """(v1.2) Shaping at the learner (SPEC §13): the learner keeps a copy of the task's pool
+        and shapes its steps in its own process; only its episode ends cross the network.
+        First message: `open`; the server answers `opened` (the task), then `snapshot` (the
+        whole pool), then an `update` for every later change of the pool, in version order,
+        whoever made it (this client through `ends`, another stream, AddTrajectory,
+        ResetPool, another replica). Every `ends` message is answered by exactly one `ack`,
+        in order, sent after the updates that carry its changes: a client that applies every
+        update it has received before its next step shapes exactly as a `Shape` stream would.
+        Needs the `writer` role; the stream counts as an open stream of its tenant and task,
+        and the steps it reports count against the tenant's steps per second.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_ShapingServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -187,6 +208,11 @@ def add_ShapingServicer_to_server(servicer, server):
                     servicer.Shape,
                     request_deserializer=tamrm_dot_v1_dot_shaping__pb2.ShapeRequest.FromString,
                     response_serializer=tamrm_dot_v1_dot_shaping__pb2.ShapeResponse.SerializeToString,
+            ),
+            'Follow': grpc.stream_stream_rpc_method_handler(
+                    servicer.Follow,
+                    request_deserializer=tamrm_dot_v1_dot_shaping__pb2.FollowRequest.FromString,
+                    response_serializer=tamrm_dot_v1_dot_shaping__pb2.FollowResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -407,6 +433,33 @@ class Shaping:
             '/tamrm.v1.Shaping/Shape',
             tamrm_dot_v1_dot_shaping__pb2.ShapeRequest.SerializeToString,
             tamrm_dot_v1_dot_shaping__pb2.ShapeResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Follow(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/tamrm.v1.Shaping/Follow',
+            tamrm_dot_v1_dot_shaping__pb2.FollowRequest.SerializeToString,
+            tamrm_dot_v1_dot_shaping__pb2.FollowResponse.FromString,
             options,
             channel_credentials,
             insecure,

@@ -83,6 +83,18 @@ class ShapingStub:
     """The shaping stream. First message: `open`; then one `steps` batch per vector step.
     The server answers `opened`, then exactly one `shaped` per batch, in order.
     """
+    Follow: _grpc.StreamStreamMultiCallable[_shaping_pb2.FollowRequest, _shaping_pb2.FollowResponse]
+    """(v1.2) Shaping at the learner (SPEC §13): the learner keeps a copy of the task's pool
+    and shapes its steps in its own process; only its episode ends cross the network.
+    First message: `open`; the server answers `opened` (the task), then `snapshot` (the
+    whole pool), then an `update` for every later change of the pool, in version order,
+    whoever made it (this client through `ends`, another stream, AddTrajectory,
+    ResetPool, another replica). Every `ends` message is answered by exactly one `ack`,
+    in order, sent after the updates that carry its changes: a client that applies every
+    update it has received before its next step shapes exactly as a `Shape` stream would.
+    Needs the `writer` role; the stream counts as an open stream of its tenant and task,
+    and the steps it reports count against the tenant's steps per second.
+    """
 
 @_typing.type_check_only
 class ShapingAsyncStub(ShapingStub):
@@ -116,6 +128,18 @@ class ShapingAsyncStub(ShapingStub):
     Shape: _aio.StreamStreamMultiCallable[_shaping_pb2.ShapeRequest, _shaping_pb2.ShapeResponse]  # type: ignore[assignment]
     """The shaping stream. First message: `open`; then one `steps` batch per vector step.
     The server answers `opened`, then exactly one `shaped` per batch, in order.
+    """
+    Follow: _aio.StreamStreamMultiCallable[_shaping_pb2.FollowRequest, _shaping_pb2.FollowResponse]  # type: ignore[assignment]
+    """(v1.2) Shaping at the learner (SPEC §13): the learner keeps a copy of the task's pool
+    and shapes its steps in its own process; only its episode ends cross the network.
+    First message: `open`; the server answers `opened` (the task), then `snapshot` (the
+    whole pool), then an `update` for every later change of the pool, in version order,
+    whoever made it (this client through `ends`, another stream, AddTrajectory,
+    ResetPool, another replica). Every `ends` message is answered by exactly one `ack`,
+    in order, sent after the updates that carry its changes: a client that applies every
+    update it has received before its next step shapes exactly as a `Shape` stream would.
+    Needs the `writer` role; the stream counts as an open stream of its tenant and task,
+    and the steps it reports count against the tenant's steps per second.
     """
 
 class ShapingServicer(metaclass=_abc_1.ABCMeta):
@@ -195,6 +219,24 @@ class ShapingServicer(metaclass=_abc_1.ABCMeta):
     ) -> _typing.Union[_abc.Iterator[_shaping_pb2.ShapeResponse], _abc.AsyncIterator[_shaping_pb2.ShapeResponse]]:
         """The shaping stream. First message: `open`; then one `steps` batch per vector step.
         The server answers `opened`, then exactly one `shaped` per batch, in order.
+        """
+
+    @_abc_1.abstractmethod
+    def Follow(
+        self,
+        request_iterator: _MaybeAsyncIterator[_shaping_pb2.FollowRequest],
+        context: _ServicerContext,
+    ) -> _typing.Union[_abc.Iterator[_shaping_pb2.FollowResponse], _abc.AsyncIterator[_shaping_pb2.FollowResponse]]:
+        """(v1.2) Shaping at the learner (SPEC §13): the learner keeps a copy of the task's pool
+        and shapes its steps in its own process; only its episode ends cross the network.
+        First message: `open`; the server answers `opened` (the task), then `snapshot` (the
+        whole pool), then an `update` for every later change of the pool, in version order,
+        whoever made it (this client through `ends`, another stream, AddTrajectory,
+        ResetPool, another replica). Every `ends` message is answered by exactly one `ack`,
+        in order, sent after the updates that carry its changes: a client that applies every
+        update it has received before its next step shapes exactly as a `Shape` stream would.
+        Needs the `writer` role; the stream counts as an open stream of its tenant and task,
+        and the steps it reports count against the tenant's steps per second.
         """
 
 def add_ShapingServicer_to_server(servicer: ShapingServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...
