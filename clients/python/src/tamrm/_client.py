@@ -419,17 +419,28 @@ class TaskCalls:
 
     # -- sessions --------------------------------------------------------------------
 
-    def session(self, task_id: str, num_envs: int = 1) -> Session:
+    def session(self, task_id: str, num_envs: int = 1, *, local: bool = False) -> Session:
         """Open a session for ``num_envs`` environments of a task.
 
         The stream opens immediately (the answer to ``Open`` is in ``session.task``). Use
         the session as a context manager so that it is closed.
 
+        With ``local=True`` (a :class:`Client` only; SPEC §13) the session shapes every
+        step in this process, against a copy of the task's pool that follows the server
+        (a ``Follow`` stream): only episode ends (and a count of steps) cross the
+        network. Its methods, arguments, results and errors are a remote session's, and
+        one learner alone gets the same values bit for bit; other learners' pool changes
+        reach it within the server's staleness bound. A broken stream is re-opened as a
+        remote session's is (``resume_timeout_secs``), re-sending the episode ends the
+        server had not acknowledged.
+
         Raises:
+            TypeError: ``local=True`` on a :class:`tamrm.Engine` (its sessions are
+                in-process already).
             TaskNotFound: No such task.
             InvalidArgument: ``num_envs`` was rejected.
         """
-        return Session(self, task_id, num_envs)
+        return Session(self, task_id, num_envs, local=local)
 
 
 class Client(TaskCalls, Closing):

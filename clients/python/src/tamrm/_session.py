@@ -68,12 +68,14 @@ def _flags(name: str, value: object, size: int) -> npt.NDArray[np.bool_] | None:
 class Session(Closing):
     """One open stream shaping ``num_envs`` environments of one task.
 
-    Create it with :meth:`tamrm.Client.session` (a ``Shape`` stream to a server) or
-    :meth:`tamrm.Engine.session` (in-process) and use it as a context manager; each
-    :meth:`step` is one batch, answered before it returns. A session is not
-    thread-safe: use one per thread (several sessions may shape on the same task at
-    once). A session of a :class:`tamrm.Client` pickles as a new session of the same task
-    on (the unpickled copy of) its client, e.g. in a ``SubprocVecEnv`` worker.
+    Create it with :meth:`tamrm.Client.session` (a ``Shape`` stream to a server, or with
+    ``local=True`` a local session: shaped in this process against a followed copy of
+    the server's pool, SPEC §13) or :meth:`tamrm.Engine.session` (in-process) and use it
+    as a context manager; each :meth:`step` is one batch, answered before it returns. A
+    session is not thread-safe: use one per thread (several sessions may shape on the
+    same task at once). A session of a :class:`tamrm.Client` pickles as a new session of
+    the same task (local or not, as it was) on (the unpickled copy of) its client, e.g.
+    in a ``SubprocVecEnv`` worker.
 
     Attributes:
         task_id: The task shaped.
@@ -87,15 +89,22 @@ class Session(Closing):
     task: Task
     #: Set on a session made by unpickling: nobody else holds it, its wrapper owns it.
     _unpickled: bool = False
+    _local: bool = False
 
-    def __init__(self, client: Any, task_id: str, num_envs: int) -> None:
+    def __init__(self, client: Any, task_id: str, num_envs: int, *, local: bool = False) -> None:
         """Check the arguments and open the stream.
 
+        ``local=True`` opens a local session (SPEC §13) on a transport that follows the
+        server's pool (``tamrm._native.Channel.follow``) instead of a ``Shape`` stream.
+
         Raises:
-            TypeError, ValueError: ``task_id`` or ``num_envs`` is not valid.
+            TypeError, ValueError: ``task_id``, ``num_envs`` or ``local`` is not valid,
+                or ``local=True`` on a transport without local sessions (an engine).
             TaskNotFound: The task does not exist.
             InvalidArgument: The server rejected ``num_envs`` or the id.
         """
+        if not isinstance(local, bool):
+            raise TypeError(f"local must be a bool, got {type(local).__name__}")
         if not isinstance(task_id, str):
             raise TypeError(f"task_id must be a str, got {type(task_id).__name__}")
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
@@ -104,13 +113,23 @@ class Session(Closing):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if num_envs > 2**32 - 1:
             raise ValueError(f"num_envs must be < 2**32, got {num_envs}")
+        transport: Transport = client._transport
+        follow: Callable[[str, int, str], _native.NativeStream] | None = None
+        if local:
+            follow = getattr(transport, "follow", None)
+            if follow is None:
+                raise TypeError(
+                    "local=True is for a tamrm.Client (it follows a server's pool); "
+                    f"the sessions of a {type(client).__name__} shape in-process already"
+                )
         self.task_id = task_id
         self.num_envs = int(num_envs)
+        self._local = local
         self._client = client
         self._error: BaseException | None = None
-        transport: Transport = client._transport
+        opener = transport.open if follow is None else follow
         try:
-            self._native = transport.open(task_id, self.num_envs, uuid.uuid4().hex)
+            self._native = opener(task_id, self.num_envs, uuid.uuid4().hex)
         except _native.StatusError as exc:
             raise from_native(exc) from None
         self.task = Task._from_pb(pb.Task.FromString(self._native.opened))
@@ -126,7 +145,16 @@ class Session(Closing):
         # Pickled as "a session of this task on this client": unpickling (in a
         # SubprocVecEnv / AsyncVectorEnv worker) connects the pickled client and opens a
         # new session there, which the worker's wrapper then owns.
-        return (_reopen, (self._client, self.task_id, self.num_envs))
+        return (_reopen, (self._client, self.task_id, self.num_envs, self._local))
+
+    @property
+    def local(self) -> bool:
+        """Whether this is a local session (SPEC §13).
+
+        A local session shapes its steps in this process against a copy of the server's
+        pool that follows it, and sends only its episode ends.
+        """
+        return self._local
 
     @property
     def config(self) -> TaskConfig:
@@ -347,11 +375,12 @@ class Session(Closing):
 
     def __repr__(self) -> str:
         state = "closed" if self.closed else "open"
-        return f"<tamrm.Session task_id={self.task_id!r} num_envs={self.num_envs} {state}>"
+        local = " local" if self._local else ""
+        return f"<tamrm.Session task_id={self.task_id!r} num_envs={self.num_envs}{local} {state}>"
 
 
-def _reopen(client: Any, task_id: str, num_envs: int) -> Session:
-    """Unpickle a session: a new one on (the unpickled copy of) its client."""
-    session: Session = client.session(task_id, num_envs)
+def _reopen(client: Any, task_id: str, num_envs: int, local: bool = False) -> Session:
+    """Unpickle a session: a new one (local if it was) on (the unpickled copy of) its client."""
+    session: Session = client.session(task_id, num_envs, local=local)
     session._unpickled = True
     return session

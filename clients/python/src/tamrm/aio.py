@@ -54,9 +54,14 @@ class AsyncSession(AsyncClosing):
     ``await session.open()`` / ``await client.session(...)``), then ``await`` each
     :meth:`step`. Not safe for concurrent steps on the same session: await one step
     before sending the next.
+
+    Attributes:
+        local: Whether it is a local session (``client.session(..., local=True)``).
     """
 
-    def __init__(self, client: Client, task_id: str, num_envs: int) -> None:
+    def __init__(self, client: Client, task_id: str, num_envs: int, *, local: bool = False) -> None:
+        if not isinstance(local, bool):
+            raise TypeError(f"local must be a bool, got {type(local).__name__}")
         if not isinstance(task_id, str):
             raise TypeError(f"task_id must be a str, got {type(task_id).__name__}")
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
@@ -65,6 +70,7 @@ class AsyncSession(AsyncClosing):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.task_id = task_id
         self.num_envs = int(num_envs)
+        self.local = local
         self._client = client
         self._session: Session | None = None
 
@@ -77,7 +83,7 @@ class AsyncSession(AsyncClosing):
         """
         if self._session is None or self._session.closed:
             self._session = await _in_thread(
-                Session, self._client._sync, self.task_id, self.num_envs
+                Session, self._client._sync, self.task_id, self.num_envs, local=self.local
             )
         return self
 
@@ -172,7 +178,11 @@ class AsyncSession(AsyncClosing):
 
     def __repr__(self) -> str:
         state = "closed" if self.closed else "open"
-        return f"<tamrm.aio.AsyncSession task_id={self.task_id!r} num_envs={self.num_envs} {state}>"
+        local = " local" if self.local else ""
+        return (
+            f"<tamrm.aio.AsyncSession task_id={self.task_id!r} num_envs={self.num_envs}"
+            f"{local} {state}>"
+        )
 
 
 class Client(AsyncClosing):
@@ -245,9 +255,13 @@ class Client(AsyncClosing):
         """Offer a trajectory to a task's pool; see :meth:`tamrm.Client.add_trajectory`."""
         return await _in_thread(self._sync.add_trajectory, task_id, actions, score, timeout=timeout)
 
-    def session(self, task_id: str, num_envs: int = 1) -> AsyncSession:
-        """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``."""
-        return AsyncSession(self, task_id, num_envs)
+    def session(self, task_id: str, num_envs: int = 1, *, local: bool = False) -> AsyncSession:
+        """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``.
+
+        ``local=True``: a local session (shaped in-process against a followed copy of
+        the task's pool); see :meth:`tamrm.Client.session`.
+        """
+        return AsyncSession(self, task_id, num_envs, local=local)
 
     async def wait_ready(self, timeout: float = 10.0) -> None:
         """Wait until the server can be reached; see :meth:`tamrm.Client.wait_ready`."""
