@@ -120,6 +120,19 @@ impl Committed {
     }
 }
 
+/// What a commit of several requests' operations at once (a group commit, see
+/// [`Store::commit_group`]) did: the commit of their concatenation, and how many of each
+/// request's offers were re-sent ends.
+#[derive(Debug, Clone)]
+pub struct GroupCommitted {
+    /// The commit of every part's operations, in order, as one.
+    pub committed: Committed,
+    /// Per part, how many of its offers were episode ends the store already had committed
+    /// (`committed.resent` split by part); `None` when the store cannot tell which part
+    /// they were in (then only the total is known).
+    pub resent: Option<Vec<usize>>,
+}
+
 /// A pool changed in the store (by this server or another one), or its task was deleted.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PoolChanged {
@@ -131,8 +144,9 @@ pub struct PoolChanged {
     pub deleted: bool,
 }
 
-/// A storage failure.
-#[derive(Debug, thiserror::Error)]
+/// A storage failure. `Clone`: a failed group commit fails every request in it with the
+/// same error.
+#[derive(Debug, Clone, thiserror::Error)]
 pub enum StoreError {
     /// Reading or writing failed; `path` names the file, directory or key concerned.
     #[error("{}: {message}", path.display())]
@@ -195,8 +209,9 @@ pub fn apply_ops(base: &Pool, ops: Vec<PoolOp>) -> (Pool, Vec<bool>) {
 }
 
 /// Persistence of task configs and pools. Calls for one task are serialised by the
-/// registry (commits of one task never overlap on one server); calls for different tasks
-/// may run at once. Every method may do I/O and is async: blocking implementations move
+/// registry (commits of one task never overlap on one server: it commits the changes
+/// planned meanwhile together, [`Store::commit_group`]); calls for different tasks may
+/// run at once. Every method may do I/O and is async: blocking implementations move
 /// their work off the async executor themselves.
 #[async_trait::async_trait]
 pub trait Store: Send + Sync + 'static {
@@ -226,6 +241,28 @@ pub trait Store: Send + Sync + 'static {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError>;
+    /// [`Store::commit`] of several requests' operations at once (group commit): the
+    /// parts, in order, are committed as one (one record and one sync for a durable store,
+    /// one atomic update for a shared one), exactly as their concatenation would be. The
+    /// default does just that; a store that can tell which part a re-sent end belonged to
+    /// says so in [`GroupCommitted::resent`].
+    async fn commit_group(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        parts: Vec<Vec<PoolOp>>,
+        counters: Counters,
+    ) -> Result<GroupCommitted, StoreError> {
+        let lens: Vec<usize> = parts.iter().map(Vec::len).collect();
+        let ops = parts.into_iter().flatten().collect();
+        let committed = self.commit(id, base, ops, counters).await?;
+        let resent = match (committed.resent, lens.len()) {
+            (0, n) => Some(vec![0; n]),
+            (all, 1) => Some(vec![all]),
+            _ => None,
+        };
+        Ok(GroupCommitted { committed, resent })
+    }
     /// Persists the counters without a pool change.
     async fn save_counters(
         &self,

@@ -40,7 +40,10 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::broadcast;
 
 use super::disk::{decode_trajectory_bytes, encode_trajectory};
-use super::{apply_ops, Committed, Counters, PoolChanged, PoolOp, Store, StoreError, StoredTask};
+use super::{
+    apply_ops, Committed, Counters, GroupCommitted, PoolChanged, PoolOp, Store, StoreError,
+    StoredTask,
+};
 use crate::core::{Pool, TaskConfig, Trajectory};
 
 /// The set of every task key.
@@ -197,13 +200,17 @@ redis.call('PUBLISH', ARGV[2], 'deleted ' .. ARGV[1] .. ' ' .. ARGV[3])
 return 1
 "#;
 
-/// The §6 update of a commit, atomically. KEYS: meta, traj, scores, ended. ARGV:
-/// incarnation, channel, task key, Δepisodes, Δsteps, end-record TTL (s), number of
-/// ops, then per op: kind ('offer' / 'reset'), score, trajectory bytes, env, episodes
-/// ended with this one (the episode's number + 1, saturating; '' for no end record).
-/// Answers {1, version before, version after, next_seq before, per op 1 changed / 0 not
-/// / 2 a re-sent end}, or {0} if the task is gone. Episode counts are u64 in decimal,
-/// compared as such (`at_least`): Lua's numbers are doubles, exact only below 2^53.
+/// The §6 update of a commit (of one request, or of a group of them: their operations
+/// one after the other), atomically. KEYS: meta, traj, scores, then the end record of
+/// each client whose episode ends the commit carries (a group may carry several
+/// clients'). ARGV: incarnation, channel, task key, Δepisodes, Δsteps, end-record TTL
+/// (s), number of ops, then per op: kind ('offer' / 'reset'), score, trajectory bytes,
+/// env, episodes ended with this one (the episode's number + 1, saturating), and which of
+/// the end records it goes to (1-based among them; env, count and record are '' for no
+/// end record). Answers {1, version before, version after, next_seq before, per op 1
+/// changed / 0 not / 2 a re-sent end}, or {0} if the task is gone. Episode counts are
+/// u64 in decimal, compared as such (`at_least`): Lua's numbers are doubles, exact only
+/// below 2^53.
 const COMMIT: &str = r#"
 local function at_least(a, b)
   if #a ~= #b then return #a > #b end
@@ -214,7 +221,7 @@ local m = redis.call('HMGET', KEYS[1], 'capacity', 'version', 'next_seq')
 local cap, version, next_seq = tonumber(m[1]), tonumber(m[2]), tonumber(m[3])
 local before, seq_before = version, next_seq
 local out = {1, before, 0, seq_before}
-local marked = false
+local marked = {}
 local resent = 0
 local i = 8
 for op = 1, tonumber(ARGV[7]) do
@@ -226,9 +233,11 @@ for op = 1, tonumber(ARGV[7]) do
     changed = 1
   else
     local score, env, count = tonumber(ARGV[i + 1]), ARGV[i + 3], ARGV[i + 4]
+    local record = nil
+    if env ~= '' then record = 3 + tonumber(ARGV[i + 5]) end
     local dup = false
-    if env ~= '' then
-      local n = redis.call('HGET', KEYS[4], env)
+    if record then
+      local n = redis.call('HGET', KEYS[record], env)
       dup = n ~= false and at_least(n, count)
     end
     if dup then
@@ -262,20 +271,20 @@ for op = 1, tonumber(ARGV[7]) do
         version = version + 1
         changed = 1
       end
-      if env ~= '' then
-        redis.call('HSET', KEYS[4], env, count)
-        marked = true
+      if record then
+        redis.call('HSET', KEYS[record], env, count)
+        marked[record] = true
       end
     end
   end
   out[#out + 1] = changed
-  i = i + 5
+  i = i + 6
 end
 redis.call('HSET', KEYS[1], 'version', version, 'next_seq', next_seq)
 -- Δepisodes counted the re-sent ends too: they are not episodes completed.
 redis.call('HINCRBY', KEYS[1], 'episodes_completed', math.max(0, tonumber(ARGV[4]) - resent))
 redis.call('HINCRBY', KEYS[1], 'steps_shaped', ARGV[5])
-if marked then redis.call('EXPIRE', KEYS[4], ARGV[6]) end
+for record in pairs(marked) do redis.call('EXPIRE', KEYS[record], ARGV[6]) end
 if version ~= before then
   redis.call('PUBLISH', ARGV[2], version .. ' ' .. ARGV[1] .. ' ' .. ARGV[3])
 end
@@ -464,18 +473,23 @@ impl RedisStore {
     ) -> Result<CommitAnswer, StoreError> {
         let incarnation = self.incarnation(task)?;
         let keys = Keys::of(task);
-        let client = ops.iter().find_map(|op| match op {
-            PoolOp::Offer { end: Some(e), .. } => Some(e.client.clone()),
-            _ => None,
-        });
-        let ended = Keys::ended(task, &incarnation, client.as_deref().unwrap_or(""));
+        // The clients whose end records the commit touches, in order of first mention (a
+        // group commit carries the ends of every writer in it).
+        let mut clients: Vec<&Arc<str>> = Vec::new();
+        for op in ops {
+            if let PoolOp::Offer { end: Some(e), .. } = op {
+                if !clients.contains(&&e.client) {
+                    clients.push(&e.client);
+                }
+            }
+        }
         let delta = self.delta(task, counters);
         let mut inv = self.commit.prepare_invoke();
-        inv.key(&keys.meta)
-            .key(&keys.traj)
-            .key(&keys.scores)
-            .key(&ended)
-            .arg(&incarnation)
+        inv.key(&keys.meta).key(&keys.traj).key(&keys.scores);
+        for client in &clients {
+            inv.key(Keys::ended(task, &incarnation, client));
+        }
+        inv.arg(&incarnation)
             .arg(CHANNEL)
             .arg(task)
             .arg(delta.episodes_completed)
@@ -485,7 +499,7 @@ impl RedisStore {
         for op in ops {
             match op {
                 PoolOp::Reset => {
-                    inv.arg("reset").arg("").arg("").arg("").arg("");
+                    inv.arg("reset").arg("").arg("").arg("").arg("").arg("");
                 }
                 PoolOp::Offer {
                     actions,
@@ -497,18 +511,24 @@ impl RedisStore {
                         score: *score,
                         seq: 0,
                     });
-                    let (env, count) = match end {
-                        // A store that decides the end record needs one client per commit.
-                        Some(e) if Some(&e.client) == client.as_ref() => {
-                            (e.env.to_string(), e.episode.saturating_add(1).to_string())
+                    let (env, count, record) = match end {
+                        Some(e) => {
+                            let record =
+                                clients.iter().position(|c| **c == e.client).unwrap_or(0) + 1;
+                            (
+                                e.env.to_string(),
+                                e.episode.saturating_add(1).to_string(),
+                                record.to_string(),
+                            )
                         }
-                        _ => (String::new(), String::new()),
+                        None => (String::new(), String::new(), String::new()),
                     };
                     inv.arg("offer")
                         .arg(score_text(*score))
                         .arg(bytes)
                         .arg(env)
-                        .arg(count);
+                        .arg(count)
+                        .arg(record);
                 }
             }
         }
@@ -543,6 +563,46 @@ impl RedisStore {
             },
         );
         Ok(answer)
+    }
+
+    /// [`Store::commit`], with the script's decision per op (1 stored, 0 not, 2 re-sent).
+    async fn commit_ops(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<(Committed, Vec<u64>), StoreError> {
+        let CommitAnswer {
+            before,
+            after,
+            seq_before,
+            decided,
+            resent,
+        } = self.run_commit(id, &ops, counters).await?;
+        let changed: Vec<bool> = decided.iter().map(|&c| c == 1).collect();
+        if before == base.version() && seq_before == base.next_seq() && resent == 0 {
+            // Nobody changed the pool since `base`: the same rule gives the same pool here.
+            let (pool, local) = apply_ops(&base, ops);
+            if pool.version() == after && local == changed {
+                return Ok((Committed::new(Arc::new(pool), changed), decided));
+            }
+            tracing::warn!(
+                task = id,
+                "Redis decided a commit differently; reloading the pool"
+            );
+        }
+        // Another server changed the pool meanwhile: read the result (or a newer pool).
+        let pool = self.load_pool(id).await?.ok_or_else(|| StoreError::Gone {
+            task: id.to_string(),
+        })?;
+        let committed = Committed {
+            pool: Arc::new(pool),
+            changed,
+            version: after,
+            resent,
+        };
+        Ok((committed, decided))
     }
 
     /// Reads a task's meta and trajectories in one atomic round trip: the task and its
@@ -769,34 +829,33 @@ impl Store for RedisStore {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
-        let CommitAnswer {
-            before,
-            after,
-            seq_before,
-            decided,
-            resent,
-        } = self.run_commit(id, &ops, counters).await?;
-        let changed: Vec<bool> = decided.iter().map(|&c| c == 1).collect();
-        if before == base.version() && seq_before == base.next_seq() && resent == 0 {
-            // Nobody changed the pool since `base`: the same rule gives the same pool here.
-            let (pool, local) = apply_ops(&base, ops);
-            if pool.version() == after && local == changed {
-                return Ok(Committed::new(Arc::new(pool), changed));
-            }
-            tracing::warn!(
-                task = id,
-                "Redis decided a commit differently; reloading the pool"
-            );
-        }
-        // Another server changed the pool meanwhile: read the result (or a newer pool).
-        let pool = self.load_pool(id).await?.ok_or_else(|| StoreError::Gone {
-            task: id.to_string(),
-        })?;
-        Ok(Committed {
-            pool: Arc::new(pool),
-            changed,
-            version: after,
-            resent,
+        Ok(self.commit_ops(id, base, ops, counters).await?.0)
+    }
+
+    /// One script for the whole group; the script says which offers were re-sent ends, so
+    /// each part gets its own.
+    async fn commit_group(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        parts: Vec<Vec<PoolOp>>,
+        counters: Counters,
+    ) -> Result<GroupCommitted, StoreError> {
+        let lens: Vec<usize> = parts.iter().map(Vec::len).collect();
+        let ops = parts.into_iter().flatten().collect();
+        let (committed, decided) = self.commit_ops(id, base, ops, counters).await?;
+        let mut at = 0;
+        let resent = lens
+            .iter()
+            .map(|&n| {
+                let part = decided.get(at..at + n).unwrap_or_default();
+                at += n;
+                part.iter().filter(|&&d| d == 2).count()
+            })
+            .collect();
+        Ok(GroupCommitted {
+            committed,
+            resent: Some(resent),
         })
     }
 

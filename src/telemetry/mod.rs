@@ -172,7 +172,7 @@ impl Metrics {
         );
         registry.register(
             "tamrm_store_commit_seconds",
-            "Time of one store commit (episode ends of a batch, AddTrajectory, ResetPool)",
+            "Time of one store commit (the episode ends of a batch, AddTrajectory, ResetPool, or a group of them on one task committed together)",
             m.commit_seconds.clone(),
         );
         registry.register(

@@ -1,12 +1,14 @@
-//! A [`Store`] decorator that times every commit (`tamrm_store_commit_seconds`) and counts
-//! the pool operations that changed a pool (`tamrm_pool_changes_total`); every other call
-//! goes straight through.
+//! A [`Store`] decorator that times every commit (`tamrm_store_commit_seconds`: one per
+//! group of a task's changes committed together) and counts the pool operations that
+//! changed a pool (`tamrm_pool_changes_total`); every other call goes straight through.
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use crate::core::{Pool, TaskConfig};
-use crate::store::{Committed, Counters, PoolChanged, PoolOp, Store, StoreError, StoredTask};
+use crate::store::{
+    Committed, Counters, GroupCommitted, PoolChanged, PoolOp, Store, StoreError, StoredTask,
+};
 
 use super::Metrics;
 
@@ -57,6 +59,20 @@ impl Store for MeteredStore {
         let changes = committed.changed.iter().filter(|&&c| c).count();
         self.metrics.commit(id, start.elapsed(), changes);
         Ok(committed)
+    }
+
+    async fn commit_group(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        parts: Vec<Vec<PoolOp>>,
+        counters: Counters,
+    ) -> Result<GroupCommitted, StoreError> {
+        let start = Instant::now();
+        let done = self.inner.commit_group(id, base, parts, counters).await?;
+        let changes = done.committed.changed.iter().filter(|&&c| c).count();
+        self.metrics.commit(id, start.elapsed(), changes);
+        Ok(done)
     }
 
     async fn save_counters(
