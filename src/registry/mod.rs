@@ -10,6 +10,7 @@
 //! Create and delete are serialised by one admin lock, which the step path never touches.
 //! Per-task locking is described in [`task`].
 
+mod group;
 mod task;
 
 use std::sync::atomic::{AtomicU64, Ordering};

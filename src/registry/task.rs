@@ -1,22 +1,33 @@
-//! One task: its immutable config, its published pool, its counters, and the serialised
-//! path by which its pool changes.
+//! One task: its immutable config, its published pool, its counters, and the path by
+//! which its pool changes.
 //!
 //! The pool is published as an `Arc<Pool>` behind a `RwLock` that is only ever held for
 //! a pointer copy or swap: the step path takes a snapshot and shapes without any lock,
-//! and notices a newer pool with one atomic load. Pool changes of one task are
-//! serialised by its writer lock: the writer plans against the latest pool, the store
-//! commits (fsync, or the shared store's atomic update), then the result is published.
-//! Readers keep shaping against the previous pool meanwhile.
+//! and notices a newer pool with one atomic load.
+//!
+//! Pool changes of one task are *planned* one at a time, under its writer lock, against
+//! the planned pool: the published pool plus every change queued or in flight. A writer
+//! queues its operations and releases the lock at once; it does not hold it across the
+//! store's commit. One leader at a time commits everything queued meanwhile, in planning
+//! order, as one store commit (one record and one sync on the disk store, one script on
+//! Redis) against the last committed pool, publishes the result, and answers each writer
+//! with its own slice; no answer is sent before the store acknowledged its group (SPEC
+//! §10). The leader is the writer that found no group in flight: it commits its own
+//! change inline, and hands what queued meanwhile to a task of its own that commits group
+//! after group until the queue is empty (`group.rs`). A failed group fails every request
+//! in it and every request planned on top of it, and publishes nothing. Readers keep
+//! shaping against the published pool meanwhile.
 
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
 
 use parking_lot::RwLock;
-use tokio::sync::{Mutex, OwnedMutexGuard};
+use tokio::sync::{oneshot, Mutex, Notify, OwnedMutexGuard};
 
+use super::group::{self, Commits, Detached, Planned, Request};
 use crate::core::{ActionSeq, Pool, TaskConfig};
 use crate::error::Error;
-use crate::store::{Committed, Counters, EndedEpisodes, PoolOp, Store, StoreError};
+use crate::store::{Committed, Counters, EndedEpisodes, GroupCommitted, PoolOp, Store, StoreError};
 
 /// Live statistics of a task (the proto's `TaskStats`).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,8 +57,12 @@ pub struct TaskHandle {
     config: TaskConfig,
     /// The published pool; the lock is held only to copy or swap the `Arc`.
     pool: RwLock<Arc<Pool>>,
-    /// Serialises pool changes (and deletion) of this task.
+    /// Serialises the planning of pool changes (and deletion) of this task.
     writer: Arc<Mutex<()>>,
+    /// The changes planned and not yet acknowledged, and who commits them.
+    commits: parking_lot::Mutex<Commits>,
+    /// Woken whenever no group is in flight any more.
+    idle: Notify,
     /// Version of the published pool, so the step path can notice a change with one load.
     published: AtomicU64,
     deleted: AtomicBool,
@@ -72,14 +87,17 @@ impl Drop for StreamGuard {
     }
 }
 
-/// The right to change a task's pool, with the pool to plan against (the latest).
+/// The right to plan a change of a task's pool, with the pool to plan against.
 pub struct Writer {
     _guard: OwnedMutexGuard<()>,
     base: Arc<Pool>,
+    /// The task's count of failed groups when the base was taken.
+    epoch: u64,
 }
 
 impl Writer {
-    /// The pool the change is planned against: the latest published one.
+    /// The pool the change is planned against: the published pool plus every change
+    /// queued or in flight (their commits come first).
     pub fn base(&self) -> &Arc<Pool> {
         &self.base
     }
@@ -99,6 +117,8 @@ impl TaskHandle {
             published: AtomicU64::new(pool.version()),
             pool: RwLock::new(Arc::new(pool)),
             writer: Arc::new(Mutex::new(())),
+            commits: parking_lot::Mutex::new(Commits::default()),
+            idle: Notify::new(),
             deleted: AtomicBool::new(false),
             episodes_completed: AtomicU64::new(counters.episodes_completed),
             steps_shaped: AtomicU64::new(counters.steps_shaped),
@@ -207,14 +227,53 @@ impl TaskHandle {
         self.episodes_completed.fetch_add(1, Ordering::Relaxed);
     }
 
-    /// Waits for the right to change the pool.
+    /// Waits for the right to plan a change of the pool.
     pub async fn writer(&self) -> Result<Writer, Error> {
         let guard = self.writer.clone().lock_owned().await;
         self.check_live()?;
+        let (planned, epoch) = {
+            let mut c = self.commits.lock();
+            let planned = c
+                .planned
+                .as_mut()
+                .map(|p| (p.base.clone(), std::mem::take(&mut p.tail)));
+            (planned, c.epoch)
+        };
+        let base = match planned {
+            // Nothing queued or in flight (and none can be queued while the lock is held).
+            None => self.snapshot(),
+            Some((base, tail)) if tail.is_empty() => base,
+            Some((base, tail)) => {
+                let pool = Arc::new(Planned::apply(&base, tail));
+                let mut c = self.commits.lock();
+                if c.epoch == epoch {
+                    if let Some(p) = c.planned.as_mut().filter(|p| Arc::ptr_eq(&p.base, &base)) {
+                        p.base = pool.clone();
+                    }
+                }
+                pool
+            }
+        };
         Ok(Writer {
             _guard: guard,
-            base: self.snapshot(),
+            base,
+            epoch,
         })
+    }
+
+    /// The writer lock, once no group is in flight (and none can start while it is held):
+    /// for what must not overlap a commit of the task (deletion, counters).
+    async fn quiet(&self) -> OwnedMutexGuard<()> {
+        let guard = self.writer.clone().lock_owned().await;
+        loop {
+            let idle = self.idle.notified();
+            tokio::pin!(idle);
+            idle.as_mut().enable();
+            if !self.commits.lock().leading {
+                return guard;
+            }
+            idle.await;
+        }
     }
 
     fn publish(&self, pool: Arc<Pool>) {
@@ -229,9 +288,13 @@ impl TaskHandle {
         }
     }
 
-    /// Whether episode `number` of `env` of `client` was already committed.
+    /// Whether episode `number` of `env` of `client` was already committed, or is being
+    /// committed (queued or in flight: then it is not to be offered again either).
     pub fn already_ended(&self, client: &str, env: u32, number: u64) -> bool {
+        // The committed record first: a group moves its ends there before it forgets them
+        // as pending.
         self.ended.lock().contains(client, env, number)
+            || self.commits.lock().pending.contains(client, env, number)
     }
 
     /// Per env, how many episode ends of `client` were committed (the number of its next
@@ -256,57 +319,213 @@ impl TaskHandle {
     /// A task the store no longer has is deleted here too (another server deleted it);
     /// the error itself becomes `NOT_FOUND` in `From<StoreError> for Error`.
     fn gone_is_not_found<T>(&self, r: Result<T, StoreError>) -> Result<T, Error> {
-        r.map_err(|e| {
-            if matches!(e, StoreError::Gone { .. }) {
-                self.mark_deleted();
-            }
-            e.into()
-        })
+        r.map_err(|e| self.store_error(e))
+    }
+
+    fn store_error(&self, e: StoreError) -> Error {
+        if matches!(e, StoreError::Gone { .. }) {
+            self.mark_deleted();
+        }
+        e.into()
     }
 
     /// [`TaskHandle::commit`] for the episode ends of a batch: with `marks = (client,
-    /// [(env, episode)])` they are remembered as committed (while the writer lock is
-    /// still held) once the store acknowledged them.
+    /// [(env, episode)])` they count as being committed from now on
+    /// ([`TaskHandle::already_ended`]) and are remembered as committed once the store
+    /// acknowledged them; offers the store found re-sent (`resent`) are taken back from
+    /// `episodes_completed`.
     pub async fn commit_ends(
-        &self,
+        self: &Arc<Self>,
         writer: Writer,
         ops: Vec<PoolOp>,
         marks: Option<(&str, &[(u32, u64)])>,
     ) -> Result<Committed, Error> {
-        let committed = self.commit_locked(&writer, ops).await?;
-        if committed.resent > 0 {
-            // Ends another server committed meanwhile (SPEC §9): counted by the stream as
-            // it planned them, but they are no episodes completed here.
-            self.episodes_completed
-                .fetch_sub(committed.resent as u64, Ordering::Relaxed);
-        }
-        if let Some((client, ends)) = marks {
-            let counts = ends
-                .iter()
-                .map(|&(env, number)| (env, number.saturating_add(1)));
-            self.ended.lock().merge(client, counts);
-        }
+        self.submit(writer, ops, marks).await
+    }
+
+    /// Commits `ops` (planned against `writer.base()`) to the store, together with the
+    /// changes planned before and after them that wait for the store at the same time, and
+    /// publishes the pool the store returns. The writer lock is released once they are
+    /// queued. The answer is this commit's own: `changed` per op, the version right after
+    /// its own changes, the pool after its group. Nothing is published if the store fails,
+    /// and then every change planned on top of this one fails too.
+    pub async fn commit(
+        self: &Arc<Self>,
+        writer: Writer,
+        ops: Vec<PoolOp>,
+    ) -> Result<Committed, Error> {
+        self.submit(writer, ops, None).await
+    }
+
+    async fn submit(
+        self: &Arc<Self>,
+        writer: Writer,
+        ops: Vec<PoolOp>,
+        marks: Option<(&str, &[(u32, u64)])>,
+    ) -> Result<Committed, Error> {
+        let (answer, answered) = oneshot::channel();
+        let lead = {
+            let mut c = self.commits.lock();
+            if c.epoch != writer.epoch {
+                // Planned against changes of a group that failed since.
+                let failure = c.failure.clone().unwrap_or_else(|| {
+                    StoreError::new(&self.key, "a commit planned before this one failed")
+                });
+                drop(c);
+                return Err(self.store_error(failure));
+            }
+            if c.planned.is_none() && ops.is_empty() {
+                // Nothing to commit, and nothing queued or in flight under the base.
+                return Ok(Committed::new(writer.base.clone(), Vec::new()));
+            }
+            c.last += 1;
+            let number = c.last;
+            match c.planned.as_mut() {
+                Some(p) => p.tail.extend(ops.iter().cloned()),
+                None => {
+                    c.planned = Some(Planned {
+                        base: writer.base.clone(),
+                        tail: ops.clone(),
+                    })
+                }
+            }
+            let marks = marks
+                .filter(|(_, ends)| !ends.is_empty())
+                .map(|(client, ends)| (Arc::<str>::from(client), ends.to_vec()));
+            if let Some((client, ends)) = &marks {
+                c.pending.add(number, client, ends);
+            }
+            let request = Request {
+                number,
+                ops,
+                marks,
+                answer,
+            };
+            if c.leading {
+                c.queue.push(request);
+                None
+            } else {
+                c.leading = true;
+                Some(vec![request])
+            }
+        };
+        // Planned and queued: the next writer plans on top of it.
         drop(writer);
-        Ok(committed)
-    }
-
-    /// Commits `ops` (planned against `writer.base()`) to the store, then publishes the
-    /// pool the store returns. Nothing is published if the store fails.
-    pub async fn commit(&self, writer: Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
-        self.commit_locked(&writer, ops).await
-    }
-
-    async fn commit_locked(&self, writer: &Writer, ops: Vec<PoolOp>) -> Result<Committed, Error> {
-        if ops.is_empty() {
-            return Ok(Committed::new(writer.base.clone(), Vec::new()));
+        if let Some(group) = lead {
+            Detached::new(self.clone().lead(group, true)).await;
         }
-        let committed = self
-            .store
-            .commit(&self.key, writer.base.clone(), ops, self.counters())
-            .await;
-        let committed = self.gone_is_not_found(committed)?;
-        self.publish(committed.pool.clone());
-        Ok(committed)
+        answered.await.unwrap_or_else(|_| {
+            Err(Error::Storage(StoreError::new(
+                &self.key,
+                "the commit was abandoned before the store answered (the server is stopping)",
+            )))
+        })
+    }
+
+    /// Commits `group`, then what queued meanwhile, group after group, until the queue is
+    /// empty. With `hand_off` (the leader is a writer waiting for its own answer, which
+    /// the first group holds), the groups after the first go to a task of their own.
+    async fn lead(self: Arc<Self>, mut group: Vec<Request>, hand_off: bool) {
+        let mut leader = Leader {
+            task: &self,
+            done: false,
+        };
+        loop {
+            if !self.commit_group(group).await {
+                break;
+            }
+            let next = {
+                let mut c = self.commits.lock();
+                if c.queue.is_empty() {
+                    // The published pool is the planned one now.
+                    c.planned = None;
+                    c.leading = false;
+                    None
+                } else {
+                    Some(std::mem::take(&mut c.queue))
+                }
+            };
+            let Some(next) = next else {
+                self.idle.notify_waiters();
+                break;
+            };
+            if hand_off {
+                if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+                    runtime.spawn(self.clone().drain(next));
+                    break;
+                }
+            }
+            group = next;
+        }
+        leader.done = true;
+    }
+
+    /// [`TaskHandle::lead`] without hand-off, for a task of its own.
+    fn drain(
+        self: Arc<Self>,
+        group: Vec<Request>,
+    ) -> std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>> {
+        Box::pin(self.lead(group, false))
+    }
+
+    /// Commits one group as one store commit against the last committed pool, publishes
+    /// the result and answers every request in it. Returns `false` if the store failed
+    /// (then every request in it and every request queued fails).
+    async fn commit_group(&self, mut group: Vec<Request>) -> bool {
+        let base = self.snapshot();
+        let parts: Vec<Vec<PoolOp>> = group
+            .iter_mut()
+            .map(|r| std::mem::take(&mut r.ops))
+            .collect();
+        let lens: Vec<usize> = parts.iter().map(Vec::len).collect();
+        let done = if lens.iter().all(|&n| n == 0) {
+            // Only writers that planned nothing, waiting for the changes under their base.
+            Ok(GroupCommitted {
+                committed: Committed::new(base, Vec::new()),
+                resent: Some(vec![0; lens.len()]),
+            })
+        } else {
+            self.store
+                .commit_group(&self.key, base, parts, self.counters())
+                .await
+        };
+        let done = match done {
+            Ok(done) => done,
+            Err(e) => {
+                let queued = self.commits.lock().fail(e.clone());
+                self.idle.notify_waiters();
+                for r in group.into_iter().chain(queued) {
+                    let _ = r.answer.send(Err(self.store_error(e.clone())));
+                }
+                return false;
+            }
+        };
+        self.publish(done.committed.pool.clone());
+        if done.committed.resent > 0 {
+            // Ends another server committed meanwhile (SPEC §9): counted by the writers as
+            // they planned them, but they are no episodes completed here.
+            self.episodes_completed
+                .fetch_sub(done.committed.resent as u64, Ordering::Relaxed);
+        }
+        let marked: Vec<bool> = group.iter().map(|r| r.marks.is_some()).collect();
+        let answers = group::split(&done, &lens, &marked);
+        {
+            let mut ended = self.ended.lock();
+            for (client, ends) in group.iter().filter_map(|r| r.marks.as_ref()) {
+                let counts = ends
+                    .iter()
+                    .map(|&(env, number)| (env, number.saturating_add(1)));
+                ended.merge(client, counts);
+            }
+        }
+        if let Some(last) = group.last() {
+            self.commits.lock().pending.release(last.number);
+        }
+        for (r, a) in group.into_iter().zip(answers) {
+            // The writer may have gone (a cancelled call); the commit stands regardless.
+            let _ = r.answer.send(Ok(a));
+        }
+        true
     }
 
     /// Publishes a newer pool learnt from the store (a change made by another server).
@@ -315,7 +534,11 @@ impl TaskHandle {
     }
 
     /// Offers a trajectory (SPEC §6). Returns whether it was stored, and the version after.
-    pub async fn offer(&self, actions: ActionSeq, score: f64) -> Result<(bool, u64), Error> {
+    pub async fn offer(
+        self: &Arc<Self>,
+        actions: ActionSeq,
+        score: f64,
+    ) -> Result<(bool, u64), Error> {
         let writer = self.writer().await?;
         let c = self
             .commit(
@@ -331,14 +554,14 @@ impl TaskHandle {
     }
 
     /// Empties the pool (bumping its version). Returns the version after.
-    pub async fn reset_pool(&self) -> Result<u64, Error> {
+    pub async fn reset_pool(self: &Arc<Self>) -> Result<u64, Error> {
         let writer = self.writer().await?;
         Ok(self.commit(writer, vec![PoolOp::Reset]).await?.version)
     }
 
     /// Persists the counters (at shutdown).
     pub async fn flush_counters(&self) -> Result<(), StoreError> {
-        let _writer = self.writer.clone().lock_owned().await;
+        let _writer = self.quiet().await;
         if self.deleted.load(Ordering::Acquire) {
             return Ok(());
         }
@@ -368,7 +591,7 @@ impl TaskHandle {
         if !self.store.is_shared() {
             return Ok(());
         }
-        let _writer = self.writer.clone().lock_owned().await;
+        let _writer = self.quiet().await;
         if self.deleted.load(Ordering::Acquire) {
             return Ok(());
         }
@@ -396,7 +619,39 @@ impl TaskHandle {
         *self.synced.lock() != self.counters()
     }
 
+    /// The writer lock once no commit is in flight, for deleting the task.
     pub(super) async fn lock_for_delete(&self) -> OwnedMutexGuard<()> {
-        self.writer.clone().lock_owned().await
+        self.quiet().await
+    }
+
+    /// Requests queued behind the group in flight (for tests that make groups).
+    #[cfg(test)]
+    pub(super) fn queued(&self) -> usize {
+        self.commits.lock().queue.len()
+    }
+}
+
+/// Marks a leader that stopped before its queue was empty (its task was dropped, at
+/// shutdown): what was queued behind it fails, as after a failed group, so that nothing
+/// waits for a leader that is gone.
+struct Leader<'a> {
+    task: &'a TaskHandle,
+    done: bool,
+}
+
+impl Drop for Leader<'_> {
+    fn drop(&mut self) {
+        if self.done {
+            return;
+        }
+        let e = StoreError::new(
+            &self.task.key,
+            "a commit was interrupted (the server is stopping)",
+        );
+        let queued = self.task.commits.lock().fail(e.clone());
+        self.task.idle.notify_waiters();
+        for r in queued {
+            let _ = r.answer.send(Err(e.clone().into()));
+        }
     }
 }

@@ -5,8 +5,9 @@
 //! latest published pool ([`FollowSession::news`]: a snapshot first, then updates that
 //! never leave a gap), wakes it when the pool changes ([`FollowSession::changed`]), and
 //! decides the learner's episode ends exactly as a `Shape` stream decides the ends of one
-//! batch ([`FollowSession::ends`]): against the latest pool under the task's writer lock,
-//! in order, at most once per (client, env, episode), with one commit for the message.
+//! batch ([`FollowSession::ends`]): against the planned pool under the task's writer lock,
+//! in order, at most once per (client, env, episode), committed with one commit for the
+//! message (shared with the other streams' changes queued at the same time).
 
 use std::collections::HashSet;
 use std::sync::Arc;

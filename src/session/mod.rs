@@ -10,9 +10,12 @@
 //! abandoned episodes; shape entries in order against the task's published pool (no lock;
 //! a change published by another stream is seen from the next entry on); at the first
 //! episode end take the task's writer lock and from then on plan every episode end of the
-//! batch against a private copy of the latest pool, so that later entries of the batch see
-//! it; at the end of the batch commit the planned operations to the store in one conditional
-//! commit and publish the pool it returns.
+//! batch against a private copy of the planned pool (the published one plus the changes
+//! other streams queued before), so that later entries of the batch see it; at the end of
+//! the batch queue the planned operations for the store, release the lock and wait until
+//! the store acknowledged them: they are committed in one conditional commit, together
+//! with whatever other streams of the task queued meanwhile (group commit), and the pool
+//! it returns is published.
 
 mod batch;
 mod follow;
@@ -315,7 +318,7 @@ impl StreamSession {
             // Saturating: a resumed count near 2^64 (a client's to send) cannot wrap.
             self.episode_no[env] = number.saturating_add(1);
             if writer.is_none() {
-                // Plan this and every later episode end of the batch against the latest
+                // Plan this and every later episode end of the batch against the planned
                 // pool, privately, while holding the task's writer lock.
                 let w = self.task.writer().await?;
                 pool = w.base().clone();

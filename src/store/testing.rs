@@ -1,22 +1,30 @@
-//! Stores for unit tests of the layers above: one whose commits can be made to fail, and
-//! one that plays a store shared with other servers (announcing changes made "elsewhere").
+//! Stores for unit tests of the layers above: one whose commits can be made to fail, held
+//! or slowed down (so that a task's changes queue up behind one in flight), and one that
+//! plays a store shared with other servers (announcing changes made "elsewhere").
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use parking_lot::Mutex;
-use tokio::sync::broadcast;
+use tokio::sync::{broadcast, Notify};
 
 use super::{Committed, Counters, MemoryStore, PoolChanged, PoolOp, Store, StoreError, StoredTask};
 use crate::core::{Pool, TaskConfig};
 
-/// A [`MemoryStore`] whose commits fail while `fail` is set, and which can announce pool
+/// A [`MemoryStore`] whose commits fail while `fail` is set, wait while held
+/// ([`TestStore::hold`]) and yield `yields` times first, and which can announce pool
 /// changes made by "another server" (`announce`), serving that pool from `load_pool`.
 #[derive(Debug)]
 pub struct TestStore {
     inner: MemoryStore,
-    /// Commits fail while set.
+    /// Commits fail while set (checked once the commit is let through).
     pub fail: AtomicBool,
+    /// Commits started (each group of a task's changes is one).
+    pub commits: AtomicUsize,
+    /// How many times a commit yields to the runtime before it commits.
+    pub yields: AtomicUsize,
+    held: AtomicBool,
+    released: Notify,
     remote: Mutex<Option<Pool>>,
     tx: broadcast::Sender<PoolChanged>,
     shared: bool,
@@ -28,10 +36,32 @@ impl TestStore {
         Arc::new(TestStore {
             inner: MemoryStore::new(),
             fail: AtomicBool::new(false),
+            commits: AtomicUsize::new(0),
+            yields: AtomicUsize::new(0),
+            held: AtomicBool::new(false),
+            released: Notify::new(),
             remote: Mutex::new(None),
             tx: broadcast::channel(16).0,
             shared,
         })
+    }
+
+    /// Commits wait from now on, until [`TestStore::release`].
+    pub fn hold(&self) {
+        self.held.store(true, Ordering::SeqCst);
+    }
+
+    /// Lets the waiting commits (and later ones) through.
+    pub fn release(&self) {
+        self.held.store(false, Ordering::SeqCst);
+        self.released.notify_waiters();
+    }
+
+    /// Waits until `n` commits have started.
+    pub async fn started(&self, n: usize) {
+        while self.commits.load(Ordering::SeqCst) < n {
+            tokio::task::yield_now().await;
+        }
     }
 
     /// Plays a change made by another server: `pool` is now the store's pool of `task`.
@@ -71,6 +101,19 @@ impl Store for TestStore {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
+        self.commits.fetch_add(1, Ordering::SeqCst);
+        for _ in 0..self.yields.load(Ordering::SeqCst) {
+            tokio::task::yield_now().await;
+        }
+        loop {
+            let released = self.released.notified();
+            tokio::pin!(released);
+            released.as_mut().enable();
+            if !self.held.load(Ordering::SeqCst) {
+                break;
+            }
+            released.await;
+        }
         if self.fail.load(Ordering::SeqCst) {
             return Err(StoreError::new(id, "injected failure"));
         }
