@@ -377,3 +377,5 @@ fn task_keys_round_trip() {
     }
     assert_eq!(task_key(DEFAULT_TENANT, "legacy"), "legacy");
 }
+
+mod group_commit;
