@@ -140,6 +140,12 @@ impl Registry {
         self.stream_bytes.load(Ordering::Relaxed)
     }
 
+    /// The syncs the store issued since it was opened (a data dir's; see
+    /// [`Store::syncs`]).
+    pub fn store_syncs(&self) -> Option<u64> {
+        self.store.syncs()
+    }
+
     /// The store's one-line description, for the start-up log.
     pub fn describe_store(&self) -> String {
         self.store.describe()

@@ -284,6 +284,11 @@ pub trait Store: Send + Sync + 'static {
     fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
         None
     }
+    /// Every fsync and fdatasync the store has issued since it was opened, for a store
+    /// that syncs files (the disk store); `None` for others.
+    fn syncs(&self) -> Option<u64> {
+        None
+    }
     /// Whether other servers may create, change and delete tasks in this store (then the
     /// registry asks it about tasks it does not know, and lists from it).
     fn is_shared(&self) -> bool {

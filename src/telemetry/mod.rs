@@ -107,6 +107,8 @@ pub struct Metrics {
     open_streams: Gauge,
     tasks: Gauge,
     stream_bytes: Gauge,
+    /// The data dir's syncs, brought up to the store's count at every scrape.
+    store_syncs: Counter,
     labels: TaskLabels,
 }
 
@@ -142,6 +144,7 @@ impl Metrics {
             open_streams: Gauge::default(),
             tasks: Gauge::default(),
             stream_bytes: Gauge::default(),
+            store_syncs: Counter::default(),
             labels: TaskLabels::new(max_task_labels),
             registry: prometheus_client::registry::Registry::default(),
         };
@@ -180,6 +183,11 @@ impl Metrics {
             "Open Shape streams",
             m.open_streams.clone(),
         );
+        registry.register(
+            "tamrm_store_syncs",
+            "fsyncs and fdatasyncs of the data dir (0 without --data-dir): divided by tamrm_pool_changes_total, the syncs each change cost",
+            m.store_syncs.clone(),
+        );
         registry.register("tamrm_tasks", "Tasks held", m.tasks.clone());
         registry.register(
             "tamrm_stream_bytes_reserved",
@@ -213,10 +221,14 @@ impl Metrics {
     }
 
     /// The Prometheus text exposition (format 0.0.4) of every metric, with the gauges of
-    /// tasks and reserved stream bytes read from `tasks` now.
+    /// tasks and reserved stream bytes and the store's syncs read from `tasks` now.
     pub fn render(&self, tasks: &crate::registry::Registry) -> Result<String, std::fmt::Error> {
         let count = tasks.len();
         self.tasks.set(i64::try_from(count).unwrap_or(i64::MAX));
+        if let Some(syncs) = tasks.store_syncs() {
+            let seen = self.store_syncs.get();
+            self.store_syncs.inc_by(syncs.saturating_sub(seen));
+        }
         let bytes = tasks.reserved_stream_bytes();
         self.stream_bytes
             .set(i64::try_from(bytes).unwrap_or(i64::MAX));

@@ -92,6 +92,10 @@ impl Store for MeteredStore {
         self.inner.changes()
     }
 
+    fn syncs(&self) -> Option<u64> {
+        self.inner.syncs()
+    }
+
     fn is_shared(&self) -> bool {
         self.inner.is_shared()
     }

@@ -570,6 +570,10 @@ impl Store for DiskStore {
         Ok(Committed::new(pool, changed))
     }
 
+    fn syncs(&self) -> Option<u64> {
+        Some(self.inner.shared.stats.syncs.get())
+    }
+
     async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
         let tasks = self.inner.shared.tasks.lock();
         Ok(tasks
