@@ -1,7 +1,9 @@
 //! The disk store's commit log and group commit, on real files: acknowledged commits
 //! survive a crash (the store dropped without any flush; a real server killed with
 //! SIGKILL), a torn last group is dropped at every byte offset, an earlier corrupt one is
-//! reported, concurrent commits lose nothing, compaction and migration keep everything.
+//! reported, concurrent commits lose nothing, compaction and migration keep everything;
+//! and the ends that streams on ONE task send at the same moment share syncs (Shape
+//! streams on the real binary, killed with SIGKILL after; Follow streams in process).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -565,4 +567,228 @@ async fn concurrent_acknowledged_adds_survive_sigkill() {
     assert!(total >= acked.len() as u64);
     let (status, _) = bin.terminate();
     assert!(status.success());
+}
+
+/// A free port on 127.0.0.1 (for the real binary's metrics endpoint).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .unwrap()
+        .port()
+}
+
+/// `name`'s value in the metrics at `addr` (the series with exactly `labels`, as written
+/// in the exposition, e.g. `{task="shared"}`; "" for none).
+async fn metric(addr: std::net::SocketAddr, name: &str, labels: &str) -> f64 {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    let mut conn = loop {
+        match tokio::net::TcpStream::connect(addr).await {
+            Ok(c) => break c,
+            Err(e) if std::time::Instant::now() > deadline => panic!("metrics at {addr}: {e}"),
+            Err(_) => tokio::time::sleep(std::time::Duration::from_millis(20)).await,
+        }
+    };
+    let req = format!("GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    conn.write_all(req.as_bytes()).await.unwrap();
+    let mut raw = String::new();
+    conn.read_to_string(&mut raw).await.unwrap();
+    let series = format!("{name}{labels} ");
+    raw.lines()
+        .find_map(|l| l.strip_prefix(&series))
+        .unwrap_or_else(|| panic!("no {series} in:\n{raw}"))
+        .trim()
+        .parse()
+        .unwrap()
+}
+
+/// A batch of one env's single step that ends its episode with `score`.
+fn ending(action: u32, score: f64) -> tamrm::proto::StepBatch {
+    let mut b = batch(&[action], &[0.0], &[true]);
+    b.episode_scores.insert(0, score);
+    b
+}
+
+/// 8 Shape streams on ONE task of the real binary with `--data-dir`, each batch ending an
+/// episode, the 8 batches of a round sent at the same moment, 25 rounds: every end is a
+/// pool change (the pool is never full), and the changes share syncs (fewer
+/// `fdatasync`s than changes, counted by the server itself: `tamrm_store_syncs_total`).
+/// Then the streams go on and the server is killed with SIGKILL among their batches:
+/// after a restart every acknowledged change is there, one version per change.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn ends_of_streams_on_one_task_share_syncs_and_survive_sigkill() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().to_str().unwrap().to_string();
+    let port = free_port();
+    let maddr: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    let listen = maddr.to_string();
+    let bin = Binary::start(&["--data-dir", &data, "--metrics-listen", &listen]);
+    let mut c = connect(bin.addr).await;
+    create(&mut c, "shared", discrete(3, 1000, 1, 0, 1)).await;
+    let (streams, rounds) = (8u32, 25u32);
+    let mut opened = Vec::new();
+    for _ in 0..streams {
+        // A connection each, as separate learners have.
+        let mut own = connect(bin.addr).await;
+        opened.push(Stream::open(&mut own, "shared", 1).await.unwrap().0);
+    }
+    let syncs_before = metric(maddr, "tamrm_store_syncs_total", "").await;
+    let barrier = Arc::new(tokio::sync::Barrier::new(streams as usize));
+    // (score bits, pool version answered) of every acknowledged end.
+    let acked = Arc::new(parking_lot::Mutex::new(Vec::<(u64, u64)>::new()));
+    let counted = Arc::new(tokio::sync::Barrier::new(streams as usize + 1));
+    let resume = Arc::new(tokio::sync::Barrier::new(streams as usize + 1));
+    let mut joins = Vec::new();
+    for (k, mut s) in opened.into_iter().enumerate() {
+        let (barrier, acked) = (barrier.clone(), acked.clone());
+        let (counted, resume) = (counted.clone(), resume.clone());
+        joins.push(tokio::spawn(async move {
+            let k = k as u32;
+            for round in 0..rounds * 3 {
+                if round == rounds {
+                    // The measured rounds are over: wait while the syncs are read.
+                    counted.wait().await;
+                    resume.wait().await;
+                }
+                if round < rounds {
+                    barrier.wait().await;
+                }
+                let score = f64::from(k * 1000 + round);
+                match s.step(ending(k % 3, score)).await {
+                    Ok(shaped) => acked.lock().push((score.to_bits(), shaped.pool_version)),
+                    Err(_) => return, // killed
+                }
+            }
+        }));
+    }
+    counted.wait().await;
+    let syncs = metric(maddr, "tamrm_store_syncs_total", "").await - syncs_before;
+    let changes = metric(maddr, "tamrm_pool_changes_total", "{task=\"shared\"}").await;
+    assert_eq!(
+        changes,
+        f64::from(streams * rounds),
+        "every end changed the pool"
+    );
+    eprintln!(
+        "{changes} changes of one task from {streams} streams: {syncs} syncs ({:.2} per change)",
+        syncs / changes
+    );
+    assert!(
+        syncs < changes,
+        "{syncs} syncs for {changes} changes: the task's changes share no sync"
+    );
+    {
+        let acked = acked.lock();
+        assert_eq!(acked.len(), (streams * rounds) as usize);
+        let most = acked.iter().map(|a| a.1).max();
+        assert_eq!(most, Some(u64::from(streams * rounds)));
+    }
+    // Go on, and kill the server among the batches.
+    resume.wait().await;
+    let target = (streams * rounds) as usize + 60;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    while acked.lock().len() < target {
+        assert!(std::time::Instant::now() < deadline, "the streams stalled");
+        tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+    }
+    drop(bin); // SIGKILL
+    for j in joins {
+        j.await.unwrap();
+    }
+    let acked = acked.lock().clone();
+    let bin = Binary::start(&["--data-dir", &data]);
+    let mut c = connect(bin.addr).await;
+    let pool = get_pool(&mut c, "shared").await;
+    let n = pool.trajectories.len() as u64;
+    assert_eq!(pool.pool_version, n, "one version per change");
+    let seqs: Vec<u64> = pool.trajectories.iter().map(|t| t.seq).collect();
+    assert_eq!(seqs, (1..=n).collect::<Vec<_>>());
+    let have: std::collections::HashSet<u64> = pool
+        .trajectories
+        .iter()
+        .map(|t| t.score.to_bits())
+        .collect();
+    for (score, version) in &acked {
+        assert!(
+            have.contains(score),
+            "acknowledged end {} (answered at version {version}) lost",
+            f64::from_bits(*score)
+        );
+        assert!(
+            *version <= n,
+            "answered version {version} past the restored {n}"
+        );
+    }
+    assert!(n >= acked.len() as u64);
+    let (status, _) = bin.terminate();
+    assert!(status.success());
+}
+
+/// The same with SPEC §13 Follow streams (in process, the store's own counts): 8 learners
+/// on one task send their ends at the same moment; every end is acknowledged with the
+/// version it produced (distinct, one per change), and the task's changes share syncs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn ends_of_follow_streams_on_one_task_share_syncs() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start_server(Some(dir.path()), |s| {
+        s.metrics_listen = Some("127.0.0.1:0".parse().unwrap());
+    })
+    .await;
+    let maddr = server.metrics_addr().unwrap();
+    let mut c = connect(server.addr()).await;
+    create(&mut c, "f", discrete(3, 1000, 1, 0, 1)).await;
+    let (learners, rounds) = (8u32, 20u64);
+    let mut followers = Vec::new();
+    for k in 0..learners {
+        let mut own = connect(server.addr()).await;
+        let client = format!("learner-{k}");
+        followers.push(Follower::open(&mut own, "f", 1, &client).await.unwrap().0);
+    }
+    let syncs_before = metric(maddr, "tamrm_store_syncs_total", "").await;
+    let barrier = Arc::new(tokio::sync::Barrier::new(learners as usize));
+    let mut joins = Vec::new();
+    for (k, mut f) in followers.into_iter().enumerate() {
+        let barrier = barrier.clone();
+        joins.push(tokio::spawn(async move {
+            let mut versions = Vec::new();
+            for episode in 0..rounds {
+                barrier.wait().await;
+                let score = (k as u64 * 1000 + episode) as f64;
+                let end = dend(0, episode, &[k as u32 % 3], Some(score), 0.0);
+                let ack = f.ends(vec![end], 1).await.unwrap();
+                assert_eq!(
+                    (ack.changed.clone(), ack.resent.clone()),
+                    (vec![true], vec![false])
+                );
+                assert!(ack.versions[0] <= ack.pool_version);
+                versions.push(ack.versions[0]);
+            }
+            versions
+        }));
+    }
+    let mut versions = Vec::new();
+    for j in joins {
+        versions.extend(j.await.unwrap());
+    }
+    versions.sort_unstable();
+    let changes = u64::from(learners) * rounds;
+    assert_eq!(
+        versions,
+        (1..=changes).collect::<Vec<_>>(),
+        "one version per change"
+    );
+    let syncs = metric(maddr, "tamrm_store_syncs_total", "").await - syncs_before;
+    eprintln!(
+        "{changes} changes of one task from {learners} follow streams: {syncs} syncs ({:.2} per change)",
+        syncs / changes as f64
+    );
+    assert!(
+        syncs < changes as f64,
+        "{syncs} syncs for {changes} changes"
+    );
+    assert_eq!(
+        get_task(&mut c, "f").await.stats.unwrap().pool_version,
+        changes
+    );
+    server.shutdown().await;
 }
