@@ -673,3 +673,84 @@ async fn an_end_another_replica_committed_meanwhile_fails_the_stream_not_the_poo
     assert_eq!(get_pool(&mut cb, "t").await.pool_version, 2);
     assert_eq!(episodes(get_task(&mut ca, "t").await), 1);
 }
+
+/// A group commit through Redis: the ends of several clients' requests, one script for
+/// all of them (each client's end record written), and a re-sent end attributed to the
+/// request that carried it, not to the others of its group.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_script_commits_a_group_and_names_whose_ends_were_re_sent() {
+    use std::sync::Arc;
+    use tamrm::core::{ActionSeq, Pool, TaskConfig, TaskConfigInput};
+    use tamrm::store::{Counters, EndMark, PoolOp, RedisOptions, RedisStore, Store};
+
+    let redis = RedisServer::start();
+    let store = RedisStore::open(&RedisOptions::new(redis.url()))
+        .await
+        .unwrap();
+    let config = TaskConfig::resolve(&TaskConfigInput {
+        num_actions: 3,
+        pool_capacity: Some(8),
+        ..Default::default()
+    })
+    .unwrap();
+    store.create_task("g", &config).await.unwrap();
+    let end = |client: &str, env: u32, episode: u64, score: f64| PoolOp::Offer {
+        actions: ActionSeq::Discrete(vec![env % 3, 1]),
+        score,
+        end: Some(EndMark {
+            client: Arc::from(client),
+            env,
+            episode,
+        }),
+    };
+    let scripts = || -> u64 {
+        let info = redis.cli(&["INFO", "commandstats"]);
+        info.lines()
+            .filter(|l| l.starts_with("cmdstat_evalsha:") || l.starts_with("cmdstat_eval:"))
+            .filter_map(|l| {
+                l.split("calls=")
+                    .nth(1)?
+                    .split(',')
+                    .next()?
+                    .parse::<u64>()
+                    .ok()
+            })
+            .sum()
+    };
+    let parts = vec![
+        vec![end("a", 0, 0, 1.0)],
+        vec![end("b", 0, 0, 2.0), end("b", 1, 0, 3.0)],
+    ];
+    let base = Arc::new(Pool::new(8));
+    let done = store
+        .commit_group("g", base, parts, Counters::default())
+        .await
+        .unwrap();
+    assert_eq!(done.committed.changed, vec![true; 3]);
+    assert_eq!((done.committed.version, done.resent), (3, Some(vec![0, 0])));
+    assert_eq!(store.ended_episodes("g", "a").await.unwrap(), vec![(0, 1)]);
+    let mut b = store.ended_episodes("g", "b").await.unwrap();
+    b.sort_unstable();
+    assert_eq!(
+        b,
+        vec![(0, 1), (1, 1)],
+        "every client's record, not the first's only"
+    );
+    // b's env 1 episode 0 again (a re-send), with a's next end and c's first one.
+    let before = scripts();
+    let parts = vec![
+        vec![end("a", 0, 1, 4.0)],
+        vec![end("b", 1, 0, 3.0)],
+        vec![end("c", 5, 0, 5.0)],
+    ];
+    let done = store
+        .commit_group("g", done.committed.pool, parts, Counters::default())
+        .await
+        .unwrap();
+    assert_eq!(scripts() - before, 1, "one script for the group");
+    assert_eq!(done.committed.changed, vec![true, false, true]);
+    assert_eq!(done.resent, Some(vec![0, 1, 0]));
+    assert_eq!((done.committed.version, done.committed.resent), (5, 1));
+    assert_eq!(done.committed.pool.version(), 5);
+    assert_eq!(store.ended_episodes("g", "c").await.unwrap(), vec![(5, 1)]);
+}
