@@ -352,6 +352,13 @@ impl Pool {
         self.apply_with(change, false);
     }
 
+    /// Lays the pool out by step, after changes applied with
+    /// [`Pool::apply_without_layout`]: the pool [`Pool::apply`] would have made of them.
+    /// One layout for several changes costs what one change does.
+    pub fn lay_out(&mut self) {
+        self.build_by_step();
+    }
+
     fn apply_with(&mut self, change: &PoolChange, lay_out: bool) {
         match change {
             PoolChange::Insert {
