@@ -213,7 +213,8 @@ pub struct CommitStats {
     /// Groups written to the log, one fdatasync each (but a group of discarded episode
     /// ends only, written without one: storage.md).
     pub groups: u64,
-    /// Pool changes written to the log (commits that changed a pool).
+    /// Pool changes written to the log (inserts, replaces, resets: one version each; one
+    /// record holds all the changes of a commit, or of a task's group commit).
     pub changes: u64,
     /// Compactions of the log (snapshots written, log emptied) triggered by its size.
     pub compactions: u64,

@@ -266,7 +266,12 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     }
     log.len += bytes.len() as u64;
     shared.stats.groups.fetch_add(1, Ordering::Relaxed);
-    let n = accepted.iter().filter(|r| r.change.pool.is_some()).count() as u64;
+    // Pool changes, not records: a record of one task's group holds several.
+    let n: u64 = accepted
+        .iter()
+        .filter_map(|r| r.change.pool.as_ref())
+        .map(|p| p.pool.version().saturating_sub(p.base_version))
+        .sum();
     shared.stats.changes.fetch_add(n, Ordering::Relaxed);
     let mut tasks = shared.tasks.lock();
     for req in accepted {
