@@ -71,7 +71,7 @@ pub(crate) fn local_session(
     py: Python<'_>,
     rt: &'static Runtime,
     conn: Connection,
-) -> PyResult<NativeStream> {
+) -> PyResult<(NativeStream, Arc<FollowStore>)> {
     let (task_id, num_envs, client_id) =
         (conn.task_id.clone(), conn.num_envs, conn.client_id.clone());
     let store = Arc::new(
@@ -101,15 +101,15 @@ pub(crate) fn local_session(
         num_envs,
         client_id,
         rt,
-        local: Some(Local { store, tasks }),
+        local: Some(Local {
+            store: store.clone(),
+            tasks,
+        }),
     };
     py.detach(|| stream.reopen())
         .map_err(|s| status_error(&s))?;
-    Ok(NativeStream::new(
-        Transport::Engine(stream),
-        &opened,
-        num_envs as usize,
-    ))
+    let stream = NativeStream::new(Transport::Engine(stream), &opened, num_envs as usize);
+    Ok((stream, store))
 }
 
 fn encode(msg: &impl Message) -> Vec<u8> {
@@ -279,6 +279,15 @@ impl EngineStream {
             return Err(Status::cancelled("the session is closed"));
         };
         let rt = self.rt;
+        let ends = batch.terminated.iter().chain(&batch.truncated).any(|&e| e);
+        if let (Some(local), true) = (&self.local, ends) {
+            // A batch that may end an episode plans against the server's pool: the acks
+            // of the earlier ends first (their changes are applied to this session's
+            // pool already, as planned; see `FollowStore::commit`).
+            if let Some(pool) = rt.block_on(local.store.settle())? {
+                session.task().refresh((*pool).clone());
+            }
+        }
         match rt.block_on(session.step(&batch.batch())) {
             Ok(shaped) => Ok(Answer::from_outputs(shaped.outputs, shaped.pool_version)),
             // A local session's commit that the server refused: the server's status.
@@ -294,11 +303,16 @@ impl EngineStream {
     /// the steps it shaped since its last message first, then ends its Follow stream.
     pub fn close(&mut self) {
         self.session = None;
-        if self.local.is_some() {
+        if let Some(local) = &self.local {
             let registry = &self.registry;
-            // The timer is made inside the runtime (it needs its time driver).
+            // The timer is made inside the runtime (it needs its time driver). The last
+            // ends' acks first: a closed session has nothing in flight.
             let _ = self.rt.block_on(async {
-                tokio::time::timeout(CLOSE_REPORT, registry.flush_counters()).await
+                tokio::time::timeout(CLOSE_REPORT, async {
+                    let _ = local.store.settle().await;
+                    registry.flush_counters().await
+                })
+                .await
             });
         }
         if let Some(local) = &self.local {

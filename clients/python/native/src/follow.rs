@@ -41,12 +41,25 @@ const KEEPALIVE: Duration = Duration::from_secs(20);
 
 /// What a commit (or a steps report) waits for: the ack and the followed pool then.
 type Reply = oneshot::Sender<Result<(proto::EndsAck, Arc<Pool>), Status>>;
+/// The receiving end of a [`Reply`].
+type Answer = oneshot::Receiver<Result<(proto::EndsAck, Arc<Pool>), Status>>;
 
 /// One message for the server.
 struct Outgoing {
     msg: proto::EpisodeEnds,
     /// `None` for a message nobody waits for (a steps report, a keepalive).
     reply: Option<Reply>,
+}
+
+/// The ends a store committed without waiting for their acks.
+#[derive(Default)]
+struct Unsettled {
+    /// The acks not yet received.
+    answers: Vec<Answer>,
+    /// The first of them that failed (for the session's next step).
+    failed: Option<Status>,
+    /// Acks were received since the session last took the server's pool.
+    received: bool,
 }
 
 /// What the store and its driver share.
@@ -95,6 +108,9 @@ pub(crate) struct FollowStore {
     outgoing: Mutex<Option<mpsc::UnboundedSender<Outgoing>>>,
     /// Steps reported to the server so far (the local task's count at the last message).
     reported: Mutex<u64>,
+    /// The ends committed without waiting, which the next step that may end an episode
+    /// (and every call of the session's client) waits for.
+    unsettled: tokio::sync::Mutex<Unsettled>,
     /// The opened task as the server answered it.
     opened: proto::Task,
     description: String,
@@ -293,6 +309,7 @@ impl FollowStore {
             conn,
             outgoing: Mutex::new(Some(outgoing)),
             reported: Mutex::new(0),
+            unsettled: tokio::sync::Mutex::new(Unsettled::default()),
             opened,
             description,
         })
@@ -352,6 +369,12 @@ impl FollowStore {
         &self,
         msg: proto::EpisodeEnds,
     ) -> Result<(proto::EndsAck, Arc<Pool>), StoreError> {
+        let answer = self.submit(msg)?;
+        self.answered(answer).await
+    }
+
+    /// Queues `msg` for the server; the receiver gets its ack.
+    fn submit(&self, msg: proto::EpisodeEnds) -> Result<Answer, StoreError> {
         let (reply, answer) = oneshot::channel();
         let gone = || StoreError::Unavailable {
             what: self.description.clone(),
@@ -369,11 +392,50 @@ impl FollowStore {
                 reply: Some(reply),
             })
             .map_err(|_| ended())?;
+        Ok(answer)
+    }
+
+    /// The ack of a submitted message, or its failure.
+    async fn answered(&self, answer: Answer) -> Result<(proto::EndsAck, Arc<Pool>), StoreError> {
         match answer.await {
             Ok(Ok(answer)) => Ok(answer),
             Ok(Err(status)) => Err(self.failed(status)),
-            Err(_) => Err(ended()),
+            Err(_) => Err(match self.shared.ended.lock().clone() {
+                Some(status) => self.failed(status),
+                None => StoreError::Unavailable {
+                    what: self.description.clone(),
+                    message: "the follow stream has ended".into(),
+                },
+            }),
         }
+    }
+
+    /// Waits until every end committed without waiting is acknowledged (or failed): a
+    /// call of the session's client then sees them at the server ("read your writes").
+    pub(crate) async fn wait_acks(&self) {
+        let mut u = self.unsettled.lock().await;
+        for answer in std::mem::take(&mut u.answers) {
+            u.received = true;
+            if let Err(e) = self.answered(answer).await {
+                let status = self
+                    .take_failure()
+                    .unwrap_or_else(|| Status::unavailable(e.to_string()));
+                u.failed.get_or_insert(status);
+            }
+        }
+    }
+
+    /// [`FollowStore::wait_acks`], then the followed pool, which holds those ends (`None`
+    /// if no ack came since the last call): what the session plans its next episode end
+    /// against. Fails with the status of an end the server refused.
+    pub(crate) async fn settle(&self) -> Result<Option<Arc<Pool>>, Status> {
+        self.wait_acks().await;
+        let mut u = self.unsettled.lock().await;
+        if let Some(status) = u.failed.take() {
+            u.received = false;
+            return Err(status);
+        }
+        Ok(std::mem::take(&mut u.received).then(|| self.shared.pool.lock().clone()))
     }
 
     /// A failure as the store reports it; the status itself is kept for the session.
@@ -456,21 +518,44 @@ impl Store for FollowStore {
         Err(self.refused("deleting a task"))
     }
 
-    /// Sends the ends and the steps shaped since the last message, and answers the pool
-    /// the server made of them (with every change made before, by anyone).
+    /// Sends the ends and the steps shaped since the last message.
+    ///
+    /// Where this learner's own plan changes the pool at most once, it answers that plan
+    /// without waiting: the learner shapes on against it while the ack travels, and its
+    /// next batch that may end an episode waits for the ack and plans against the
+    /// server's pool ([`FollowStore::settle`]), so every plan starts from a pool the
+    /// server had. The server's version after the end is then never below the plan's:
+    /// it decides against a pool at least as new as `base`, and on the same pool it
+    /// decides the same (so a learner alone shapes as a `Shape` stream, bit for bit). A
+    /// plan of two or more changes could be undone in part by one change of another
+    /// learner, so it waits for the pool the server made of it, with every change made
+    /// before, by anyone.
     async fn commit(
         &self,
         _: &str,
-        _: Arc<Pool>,
+        base: Arc<Pool>,
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
+        let (planned, changed) = tamrm::store::apply_ops(&base, ops.clone());
         let ends = ops
             .into_iter()
             .map(end_proto)
             .collect::<Result<Vec<_>, _>>()
             .map_err(|s| self.failed(s))?;
-        let (ack, pool) = self.send(self.message(ends, counters)).await?;
+        let msg = self.message(ends, counters);
+        if changed.iter().filter(|&&c| c).count() <= 1 {
+            let answer = self.submit(msg)?;
+            self.unsettled.lock().await.answers.push(answer);
+            let pool = Arc::new(planned);
+            return Ok(Committed {
+                version: pool.version(),
+                pool,
+                changed,
+                resent: 0,
+            });
+        }
+        let (ack, pool) = self.send(msg).await?;
         Ok(Committed {
             pool,
             // A re-sent end (the stream broke before its ack) is the learner's own

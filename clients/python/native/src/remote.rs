@@ -104,6 +104,9 @@ pub struct Channel {
     /// How long a session's step polls for its answer before it sleeps.
     busy_poll: Duration,
     rt: &'static Runtime,
+    /// The stores of this channel's local sessions: every call waits for the acks of
+    /// their ends first, so that it sees them at the server.
+    locals: parking_lot::Mutex<Vec<std::sync::Weak<crate::follow::FollowStore>>>,
 }
 
 fn client(channel: TonicChannel) -> ShapingClient<TonicChannel> {
@@ -322,6 +325,29 @@ fn lazy_channel(rt: &Runtime, endpoint: &Endpoint, unix: Option<&std::path::Path
     }
 }
 
+impl Channel {
+    /// Waits for the acks of the episode ends this channel's local sessions sent without
+    /// waiting (SPEC §13), so that the next call sees them at the server.
+    fn settle_locals(&self, py: Python<'_>) {
+        let stores: Vec<_> = self
+            .locals
+            .lock()
+            .iter()
+            .filter_map(|s| s.upgrade())
+            .collect();
+        if stores.is_empty() {
+            return;
+        }
+        py.detach(|| {
+            self.rt.block_on(async {
+                for s in &stores {
+                    s.wait_acks().await;
+                }
+            })
+        });
+    }
+}
+
 #[pymethods]
 impl Channel {
     /// A lazily connecting channel to `targets` (each `host:port` or `unix:PATH`; the
@@ -350,6 +376,7 @@ impl Channel {
             resume_timeout: options.resume_timeout(),
             busy_poll: options.busy_poll(),
             rt,
+            locals: parking_lot::Mutex::new(Vec::new()),
         })
     }
 
@@ -383,6 +410,7 @@ impl Channel {
                 )
             })?),
         };
+        self.settle_locals(py);
         let (md, rt, tls, targets) = (&self.metadata, self.rt, self.tls, &*self.targets);
         let one = |i: usize| {
             let t = targets.get(i);
@@ -544,7 +572,12 @@ impl Channel {
             num_envs,
             client_id: client_id.to_string(),
         };
-        crate::engine::local_session(py, self.rt, conn)
+        self.settle_locals(py);
+        let (stream, store) = crate::engine::local_session(py, self.rt, conn)?;
+        let mut locals = self.locals.lock();
+        locals.retain(|s| s.strong_count() > 0);
+        locals.push(Arc::downgrade(&store));
+        Ok(stream)
     }
 
     /// Opens a `Shape` stream on `task_id` for `num_envs` environments.
@@ -555,6 +588,7 @@ impl Channel {
         num_envs: u32,
         client_id: &str,
     ) -> PyResult<NativeStream> {
+        self.settle_locals(py);
         let mut stream = RemoteStream {
             targets: self.targets.clone(),
             at: self.targets.current(),

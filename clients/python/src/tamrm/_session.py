@@ -120,7 +120,7 @@ class Session(Closing):
             if follow is None:
                 raise TypeError(
                     "local=True is for a tamrm.Client (it follows a server's pool); "
-                    f"the sessions of a {type(client).__name__} shape in-process already"
+                    f"the sessions of {type(client).__name__} shape in-process already"
                 )
         self.task_id = task_id
         self.num_envs = int(num_envs)
