@@ -17,7 +17,10 @@ Variants (shaping backends): ``plain`` (no shaping), ``engine`` (``tamrm.Engine(
 memory), ``engine-dir`` (``tamrm.Engine(data_dir)``, durable), ``remote`` (``tamrm.Client``
 to a local server without ``--data-dir``), ``remote-poll`` (the same with
 ``busy_poll_us=200``), ``remote-poll-1t`` (that, and the server with
-``--worker-threads 1``) and ``remote-dir`` (to a local server with ``--data-dir``); with
+``--worker-threads 1``) and ``remote-dir`` (to a local server with ``--data-dir``),
+``local`` and ``local-dir`` (the same servers, sessions opened with ``local=True``: steps
+shaped in-process against a followed pool, only episode ends sent; the run also prints the
+messages the servers received per env step, from their metrics); with
 ``--server ADDR`` the remote variants are replaced by one, ``server``, on that address.
 Each run uses a fresh task (created before, deleted after the timing). ``tcp-floor`` is
 the floor of every remote variant: no shaping, but one TCP round trip per vector step, of
@@ -76,6 +79,8 @@ VARIANTS = (
     "remote-poll",
     "remote-poll-1t",
     "remote-dir",
+    "local",
+    "local-dir",
     "tcp-floor",
     "wrapper-floor",
     "engine-novalues",
@@ -93,11 +98,15 @@ LABELS = {
     "remote-poll": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory",
     "remote-poll-1t": f"Client(busy_poll_us={BUSY_POLL_US}), server in memory, --worker-threads 1",
     "remote-dir": "Client, server --data-dir",
+    "local": "Client session(local=True), server in memory",
+    "local-dir": "Client session(local=True), server --data-dir",
     "server": "Client, --server",
 }
 
 # A shaping backend: tamrm.Engine or tamrm.Client (None: no shaping).
 Backend = Any
+#: Per ``Local`` backend: env steps its server counted over the runs so far.
+STEPS_SHAPED: dict[Any, int] = {}
 
 
 class TcpFloor:
@@ -147,6 +156,42 @@ class TcpFloor:
             sock.close()
 
 
+class Local:
+    """The ``local`` variants: a :class:`tamrm.Client` whose sessions are local (SPEC §13),
+    and the address of its server's metrics."""
+
+    def __init__(self, client: tamrm.Client, metrics: str) -> None:
+        self.client = client
+        self.metrics = metrics
+
+    def create_task(self, task_id: str, **config: Any) -> Any:
+        return self.client.create_task(task_id, **config)
+
+    def delete_task(self, task_id: str) -> None:
+        self.client.delete_task(task_id)
+
+    def session(self, task_id: str, num_envs: int) -> tamrm.Session:
+        return self.client.session(task_id, num_envs, local=True)
+
+    def messages_received(self) -> float:
+        """Messages the server received on Follow streams so far (its metrics)."""
+        import urllib.request
+
+        with urllib.request.urlopen(f"http://{self.metrics}/metrics") as r:
+            text = r.read().decode()
+        return sum(
+            float(line.rsplit(" ", 1)[1])
+            for line in text.splitlines()
+            if line.startswith("grpc_server_msg_received_total") and 'grpc_method="Follow"' in line
+        )
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 class WrapperFloor:
     """The ``wrapper-floor`` variant (see the module's docstring): no backend at all."""
 
@@ -178,6 +223,10 @@ def _shaped(
     try:
         with backend.session(task_id, num_envs) as session:
             yield session
+        if isinstance(backend, Local):
+            STEPS_SHAPED[backend] = STEPS_SHAPED.get(backend, 0) + (
+                backend.client.get_task(task_id).stats.steps_shaped
+            )
     finally:
         backend.delete_task(task_id)
 
@@ -414,6 +463,15 @@ def main() -> None:
             elif name == "remote-dir":
                 server = stack.enter_context(tamrm.local_server())
                 backends[name] = stack.enter_context(tamrm.Client(server.address))
+            elif name in ("local", "local-dir"):
+                metrics = f"127.0.0.1:{_free_port()}"
+                server = stack.enter_context(
+                    tamrm.local_server(
+                        in_memory=name == "local", args=["--metrics-listen", metrics]
+                    )
+                )
+                client = stack.enter_context(tamrm.Client(server.address))
+                backends[name] = Local(client, metrics)
             elif name == "server":
                 backends[name] = stack.enter_context(tamrm.Client(ns.server))
             elif name == "tcp-floor":
@@ -476,11 +534,25 @@ def main() -> None:
                 tables.append((label, ts // k, samples, ts))
                 load.append(os.getloadavg())
 
+        # Read while the servers run: messages they received per env step.
+        messages = []
+        for name in variants:
+            backend = backends.get(name)
+            if isinstance(backend, Local) and STEPS_SHAPED.get(backend):
+                received = backend.messages_received()
+                steps = STEPS_SHAPED[backend]
+                messages.append(
+                    f"{LABELS[name]}: the server received {received:,.0f} Follow messages "
+                    f"for {steps:,} env steps: 1/{steps / max(received, 1):,.0f} per env step"
+                )
+
     print(
         f"\n{started}; {platform.machine()}, {os.cpu_count()} CPUs, Python "
         f"{platform.python_version()}; {ns.repeats} interleaved repeats after 1 warm-up; "
         f"load average (1 min) {min(x[0] for x in load):.1f}-{max(x[0] for x in load):.1f}\n"
     )
+    for line in messages:
+        print(line)
     print(
         "| workload | variant | median time (s) | env steps/s | overhead (median of "
         "per-repeat ratios) | per vector step |"

@@ -11,6 +11,8 @@ already in the canonical dtypes: int64 actions, float64 rewards and values, bool
 no episode ends, so the pool does not change during the run). Clients:
 
 - ``engine``: ``tamrm.Engine()`` (in-process, its own task seeded the same way; no server);
+- ``local``: ``tamrm.Client.session(..., local=True)`` (SPEC §13: shaped in-process
+  against a followed copy of the server's pool; no round trip while no episode ends);
 - ``native``: ``tamrm.Client`` (the native extension: tonic, GIL released);
 - ``native-poll``: the same with ``busy_poll_us=200`` (polls for the answer, no sleep);
 - ``aio``: ``tamrm.aio.Client`` of this checkout, under asyncio;
@@ -55,7 +57,16 @@ HERE = Path(__file__).resolve()
 REPO = HERE.parents[3]
 OLD_COMMIT = "32108c1"  # the last commit whose Python client was pure grpcio
 TASK = "bench/step_latency"
-CLIENTS = ("engine", "native", "native-poll", "aio", "grpcio-sync", "grpcio-aio", "rust")
+CLIENTS = (
+    "engine",
+    "local",
+    "native",
+    "native-poll",
+    "aio",
+    "grpcio-sync",
+    "grpcio-aio",
+    "rust",
+)
 #: ``busy_poll_us`` of the ``native-poll`` client.
 BUSY_POLL_US = 200
 
@@ -178,6 +189,12 @@ def worker(ns: argparse.Namespace) -> dict[str, Any]:
             seed_pool(engine, TASK)
             with engine.session(TASK, ns.envs) as session:
                 lat, knn = sync_loop(session, data, ns.warmup, ns.steps)
+    elif name == "local":
+        with (
+            tamrm.Client(ns.addr) as client,
+            client.session(ns.task, ns.envs, local=True) as session,
+        ):
+            lat, knn = sync_loop(session, data, ns.warmup, ns.steps)
     elif name in ("native", "native-poll", "grpcio-sync"):
         poll = {"busy_poll_us": BUSY_POLL_US} if name == "native-poll" else {}
         with (
@@ -340,6 +357,7 @@ def run_client(
 
 LABELS = {
     "engine": "`tamrm.Engine()` (in-process)",
+    "local": "`tamrm.Client` session(local=True)",
     "native": "`tamrm.Client` (native, tonic)",
     "native-poll": f"`tamrm.Client(busy_poll_us={BUSY_POLL_US})`",
     "aio": "`tamrm.aio.Client` (asyncio)",
@@ -406,11 +424,13 @@ def main() -> None:
         f"{min(x[0] for x in load):.1f}-{max(x[0] for x in load):.1f}\n"
     )
     print(
-        "| client | envs | p50 (µs) | p50 range over rounds | p99 (µs) | p50 / Rust | p99 / Rust |"
+        "| client | envs | p50 (µs) | p50 range over rounds | p99 (µs) | p50 / Rust | p99 / Rust "
+        "| p50 / Engine |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for n in env_counts:
         ref = results.get(("rust", n))
+        engine = results.get(("engine", n))
         for name in clients:
             runs = results.get((name, n))
             if not runs:
@@ -428,6 +448,13 @@ def main() -> None:
                 ratios = f"{r50:.2f}x | {r99:.2f}x"
             else:
                 ratios = "— | —"
+            if engine and len(engine) == len(runs):
+                e50 = statistics.median(
+                    a["p50_us"] / b["p50_us"] for a, b in zip(runs, engine, strict=True)
+                )
+                ratios += f" | {e50:.2f}x"
+            else:
+                ratios += " | —"
             label = LABELS[name]
             if name == "aio" and runs[0].get("aio_transport"):
                 label += f" [{runs[0]['aio_transport']}]"
