@@ -21,19 +21,45 @@ use crate::core::Pool;
 use crate::error::Error;
 use crate::store::{Committed, GroupCommitted, PoolOp, StoreError};
 
-/// The planned pool while changes are queued or in flight: `base` with `tail` applied.
-/// The next writer that needs it applies the tail (without laying the pool out: it serves
-/// planning and the rest of a batch, not the step path) and keeps the result as the base.
+/// The planned pool while changes are queued or in flight: `base` with the operations of
+/// `tail` applied. `base` holds every request up to `through`; `tail` the later ones, per
+/// request, in planning order. A writer that shapes against the planned pool (a Shape
+/// stream's batch) applies the tail (without laying the pool out: it serves planning and
+/// the rest of a batch, not the step path) and keeps the result as the base; writers that
+/// only queue operations (Follow ends, `AddTrajectory`, `ResetPool`) never need it. When
+/// a group is committed the base moves on to the committed pool, so the tail only ever
+/// holds the requests not committed yet.
 pub(super) struct Planned {
     pub base: Arc<Pool>,
-    pub tail: Vec<PoolOp>,
+    pub through: u64,
+    pub tail: Vec<(u64, Vec<PoolOp>)>,
 }
 
 impl Planned {
-    /// `base` with `tail` applied in order (SPEC §6), as the store will apply them.
-    pub fn apply(base: &Pool, tail: Vec<PoolOp>) -> Pool {
+    /// The planned pool: applies the tail to the base and keeps the result as the base.
+    pub fn materialise(&mut self) -> Arc<Pool> {
+        if let Some(&(last, _)) = self.tail.last() {
+            let tail = std::mem::take(&mut self.tail);
+            let ops = tail.into_iter().flat_map(|(_, ops)| ops);
+            self.base = Arc::new(Planned::apply(&self.base, ops));
+            self.through = last;
+        }
+        self.base.clone()
+    }
+
+    /// The group of requests up to `last` is committed, with `pool` as the result.
+    pub fn committed(&mut self, last: u64, pool: &Arc<Pool>) {
+        if self.through < last {
+            self.base = pool.clone();
+            self.through = last;
+            self.tail.retain(|&(n, _)| n > last);
+        }
+    }
+
+    /// `base` with `ops` applied in order (SPEC §6), as the store will apply them.
+    pub fn apply(base: &Pool, ops: impl IntoIterator<Item = PoolOp>) -> Pool {
         let mut pool = base.clone();
-        for op in tail {
+        for op in ops {
             let change = match op {
                 PoolOp::Offer { actions, score, .. } => pool.plan_offer(actions, score),
                 PoolOp::Reset => Some(pool.plan_reset()),

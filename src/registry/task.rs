@@ -90,16 +90,18 @@ impl Drop for StreamGuard {
 /// The right to plan a change of a task's pool, with the pool to plan against.
 pub struct Writer {
     _guard: OwnedMutexGuard<()>,
-    base: Arc<Pool>,
-    /// The task's count of failed groups when the base was taken.
+    task: Arc<TaskHandle>,
+    /// The task's count of failed groups when the lock was taken.
     epoch: u64,
+    base: std::sync::OnceLock<Arc<Pool>>,
 }
 
 impl Writer {
     /// The pool the change is planned against: the published pool plus every change
-    /// queued or in flight (their commits come first).
+    /// queued or in flight (their commits come first). Made on first use: a writer that
+    /// only queues operations, which the store decides, needs none.
     pub fn base(&self) -> &Arc<Pool> {
-        &self.base
+        self.base.get_or_init(|| self.task.planned_pool())
     }
 }
 
@@ -228,37 +230,28 @@ impl TaskHandle {
     }
 
     /// Waits for the right to plan a change of the pool.
-    pub async fn writer(&self) -> Result<Writer, Error> {
+    pub async fn writer(self: &Arc<Self>) -> Result<Writer, Error> {
         let guard = self.writer.clone().lock_owned().await;
         self.check_live()?;
-        let (planned, epoch) = {
-            let mut c = self.commits.lock();
-            let planned = c
-                .planned
-                .as_mut()
-                .map(|p| (p.base.clone(), std::mem::take(&mut p.tail)));
-            (planned, c.epoch)
-        };
-        let base = match planned {
-            // Nothing queued or in flight (and none can be queued while the lock is held).
-            None => self.snapshot(),
-            Some((base, tail)) if tail.is_empty() => base,
-            Some((base, tail)) => {
-                let pool = Arc::new(Planned::apply(&base, tail));
-                let mut c = self.commits.lock();
-                if c.epoch == epoch {
-                    if let Some(p) = c.planned.as_mut().filter(|p| Arc::ptr_eq(&p.base, &base)) {
-                        p.base = pool.clone();
-                    }
-                }
-                pool
-            }
-        };
+        let epoch = self.commits.lock().epoch;
         Ok(Writer {
             _guard: guard,
-            base,
+            task: self.clone(),
             epoch,
+            base: std::sync::OnceLock::new(),
         })
+    }
+
+    /// The planned pool (called with the writer lock held, so nothing is queued
+    /// meanwhile): the published pool when nothing is queued or in flight.
+    fn planned_pool(&self) -> Arc<Pool> {
+        let planned = self
+            .commits
+            .lock()
+            .planned
+            .as_mut()
+            .map(Planned::materialise);
+        planned.unwrap_or_else(|| self.snapshot())
     }
 
     /// The writer lock, once no group is in flight (and none can start while it is held):
@@ -376,16 +369,21 @@ impl TaskHandle {
             }
             if c.planned.is_none() && ops.is_empty() {
                 // Nothing to commit, and nothing queued or in flight under the base.
-                return Ok(Committed::new(writer.base.clone(), Vec::new()));
+                drop(c);
+                return Ok(Committed::new(writer.base().clone(), Vec::new()));
             }
             c.last += 1;
             let number = c.last;
+            let planned = ops.clone();
             match c.planned.as_mut() {
-                Some(p) => p.tail.extend(ops.iter().cloned()),
+                Some(p) => p.tail.push((number, planned)),
                 None => {
+                    // Nothing queued or in flight: the published pool holds every earlier
+                    // change (and is the base the writer saw, if it looked).
                     c.planned = Some(Planned {
-                        base: writer.base.clone(),
-                        tail: ops.clone(),
+                        base: self.snapshot(),
+                        through: number - 1,
+                        tail: vec![(number, planned)],
                     })
                 }
             }
@@ -501,6 +499,12 @@ impl TaskHandle {
             }
         };
         self.publish(done.committed.pool.clone());
+        if let Some(last) = group.last() {
+            if let Some(p) = self.commits.lock().planned.as_mut() {
+                // What is still planned is now on top of the committed pool.
+                p.committed(last.number, &done.committed.pool);
+            }
+        }
         if done.committed.resent > 0 {
             // Ends another server committed meanwhile (SPEC §9): counted by the writers as
             // they planned them, but they are no episodes completed here.
@@ -628,6 +632,15 @@ impl TaskHandle {
     #[cfg(test)]
     pub(super) fn queued(&self) -> usize {
         self.commits.lock().queue.len()
+    }
+
+    /// The planned pool's parts: the last request its base holds, the requests of its
+    /// tail (for tests).
+    #[cfg(test)]
+    pub(super) fn planned_parts(&self) -> Option<(u64, Vec<u64>)> {
+        let c = self.commits.lock();
+        let p = c.planned.as_ref()?;
+        Some((p.through, p.tail.iter().map(|t| t.0).collect()))
     }
 }
 

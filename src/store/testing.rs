@@ -24,6 +24,9 @@ pub struct TestStore {
     /// How many times a commit yields to the runtime before it commits.
     pub yields: AtomicUsize,
     held: AtomicBool,
+    /// Releases so far: a commit waiting at a release goes through, even if the store is
+    /// held again right after.
+    releases: AtomicUsize,
     released: Notify,
     remote: Mutex<Option<Pool>>,
     tx: broadcast::Sender<PoolChanged>,
@@ -39,6 +42,7 @@ impl TestStore {
             commits: AtomicUsize::new(0),
             yields: AtomicUsize::new(0),
             held: AtomicBool::new(false),
+            releases: AtomicUsize::new(0),
             released: Notify::new(),
             remote: Mutex::new(None),
             tx: broadcast::channel(16).0,
@@ -51,15 +55,21 @@ impl TestStore {
         self.held.store(true, Ordering::SeqCst);
     }
 
-    /// Lets the waiting commits (and later ones) through.
+    /// Lets the waiting commits through, and later ones until [`TestStore::hold`].
     pub fn release(&self) {
         self.held.store(false, Ordering::SeqCst);
+        self.releases.fetch_add(1, Ordering::SeqCst);
         self.released.notify_waiters();
     }
 
-    /// Waits until `n` commits have started.
+    /// Waits until `n` commits have started (panics after 10 s).
     pub async fn started(&self, n: usize) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
         while self.commits.load(Ordering::SeqCst) < n {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "{n} commits never started"
+            );
             tokio::task::yield_now().await;
         }
     }
@@ -105,11 +115,13 @@ impl Store for TestStore {
         for _ in 0..self.yields.load(Ordering::SeqCst) {
             tokio::task::yield_now().await;
         }
+        let entered = self.releases.load(Ordering::SeqCst);
         loop {
             let released = self.released.notified();
             tokio::pin!(released);
             released.as_mut().enable();
-            if !self.held.load(Ordering::SeqCst) {
+            if !self.held.load(Ordering::SeqCst) || self.releases.load(Ordering::SeqCst) != entered
+            {
                 break;
             }
             released.await;
