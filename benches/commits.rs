@@ -1,25 +1,43 @@
-//! Durable commits: pool changes per second and syncs per change of the disk store, with
-//! 1 and with 8 streams (tasks) committing at once, against the previous commit path
-//! (re-enacted: its file steps, four syncs per change) and the disk's fdatasync latency.
+//! Commits of pool changes through a task's commit path (the path of a Shape or Follow
+//! stream's episode end and of `AddTrajectory`: the writer lock, planning, the group
+//! commit, the store), side by side in one run: 1, 8 and 64 streams on ONE task and on
+//! separate tasks (one each), for the memory store, a data dir and Redis (a
+//! `redis-server` child, `appendfsync always`). Per configuration: changes per second,
+//! commit latency p50/p99, store commits per change (a task's changes that wait while a
+//! commit of it is in flight are committed together) and syncs per change (the data dir's
+//! own count; Redis's `fdatasync`s counted by `strace` on a second, untimed
+//! `redis-server`, when strace is installed).
 //!
-//! `cargo bench --bench commits` prints a table (medians over rounds). The data dirs are
-//! created under `$TAMRM_BENCH_DIR` if set, else the system temp dir: put it on the disk
-//! you want to measure (tmpfs makes every sync free).
+//! `cargo bench --bench commits` (about two minutes), `-- --quick` for a short run. Every
+//! stream commits 200-action episodes one after the other (pool capacity 1000, never
+//! full: every offer is a change); the configurations are interleaved round by round, so
+//! that all of them see the same noise of a shared machine. Data dirs (and Redis's
+//! directories) go under `$TAMRM_BENCH_DIR` if set, else the system temp dir: put it on
+//! the disk you want to measure (tmpfs makes every sync free).
 
-use std::fs::{self, File};
-use std::io::Write;
+use std::fs::File;
+use std::net::TcpListener;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tamrm::store::{DiskStore, Store};
+use tamrm::core::{Pool, TaskConfig};
+use tamrm::limits::Limits;
+use tamrm::registry::{Registry, DEFAULT_TENANT};
+use tamrm::store::{
+    Committed, Counters, DiskStore, GroupCommitted, MemoryStore, PoolChanged, PoolOp, RedisOptions,
+    RedisStore, Store, StoreError, StoredTask,
+};
 
 #[path = "common/commits.rs"]
+#[allow(dead_code)]
 mod common;
-use common::{commit_episodes, config, EPISODE_LEN};
+use common::{config, episode, EPISODE_LEN};
 
-const ROUNDS: usize = 5;
+const STREAMS: [usize; 3] = [1, 8, 64];
 
 fn bench_dir() -> tempfile::TempDir {
     match std::env::var_os("TAMRM_BENCH_DIR") {
@@ -28,142 +46,336 @@ fn bench_dir() -> tempfile::TempDir {
     }
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+/// A store that counts the commits the registry makes (a group counts once).
+struct Counted {
+    inner: Arc<dyn Store>,
+    commits: AtomicU64,
 }
 
-/// One measured round: changes, wall time, syncs, every commit's latency.
+#[async_trait::async_trait]
+impl Store for Counted {
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+    async fn load(&self) -> Result<Vec<StoredTask>, StoreError> {
+        self.inner.load().await
+    }
+    async fn create_task(
+        &self,
+        id: &str,
+        config: &TaskConfig,
+    ) -> Result<Option<TaskConfig>, StoreError> {
+        self.inner.create_task(id, config).await
+    }
+    async fn delete_task(&self, id: &str) -> Result<(), StoreError> {
+        self.inner.delete_task(id).await
+    }
+    async fn commit(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        ops: Vec<PoolOp>,
+        counters: Counters,
+    ) -> Result<Committed, StoreError> {
+        self.commits.fetch_add(1, Ordering::Relaxed);
+        self.inner.commit(id, base, ops, counters).await
+    }
+    async fn commit_group(
+        &self,
+        id: &str,
+        base: Arc<Pool>,
+        parts: Vec<Vec<PoolOp>>,
+        counters: Counters,
+    ) -> Result<GroupCommitted, StoreError> {
+        self.commits.fetch_add(1, Ordering::Relaxed);
+        self.inner.commit_group(id, base, parts, counters).await
+    }
+    async fn save_counters(
+        &self,
+        id: &str,
+        pool: Arc<Pool>,
+        counters: Counters,
+    ) -> Result<(), StoreError> {
+        self.inner.save_counters(id, pool, counters).await
+    }
+    async fn load_pool(&self, id: &str) -> Result<Option<Pool>, StoreError> {
+        self.inner.load_pool(id).await
+    }
+    fn changes(&self) -> Option<tokio::sync::broadcast::Receiver<PoolChanged>> {
+        self.inner.changes()
+    }
+    fn syncs(&self) -> Option<u64> {
+        self.inner.syncs()
+    }
+    fn is_shared(&self) -> bool {
+        self.inner.is_shared()
+    }
+    async fn load_task(&self, id: &str) -> Result<Option<StoredTask>, StoreError> {
+        self.inner.load_task(id).await
+    }
+    async fn task_ids(&self) -> Result<Option<Vec<String>>, StoreError> {
+        self.inner.task_ids().await
+    }
+    async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
+        self.inner.ended_episodes(id, client).await
+    }
+    async fn sync_counters(
+        &self,
+        id: &str,
+        counters: Counters,
+    ) -> Result<Option<Counters>, StoreError> {
+        self.inner.sync_counters(id, counters).await
+    }
+}
+
+/// A `redis-server` child with `appendfsync always`, optionally under `strace` counting
+/// its `fsync`/`fdatasync` calls into a file.
+struct Redis {
+    child: Child,
+    port: u16,
+    trace: Option<PathBuf>,
+    _dir: tempfile::TempDir,
+}
+
+impl Redis {
+    fn start(traced: bool) -> Option<Redis> {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .ok()?
+            .port();
+        let dir = bench_dir();
+        let trace = traced.then(|| dir.path().join("syncs.trace"));
+        let mut cmd = match &trace {
+            Some(file) => {
+                let mut c = Command::new("strace");
+                c.args([
+                    "-f",
+                    "-qq",
+                    "--seccomp-bpf",
+                    "-e",
+                    "trace=fsync,fdatasync",
+                    "-o",
+                ])
+                .arg(file)
+                .arg("redis-server");
+                c
+            }
+            None => Command::new("redis-server"),
+        };
+        let redis_dir = dir.path().join("redis");
+        std::fs::create_dir_all(&redis_dir).ok()?;
+        let child = cmd
+            .args([
+                "--port",
+                &port.to_string(),
+                "--bind",
+                "127.0.0.1",
+                "--save",
+                "",
+            ])
+            .args(["--appendonly", "yes", "--appendfsync", "always"])
+            .arg("--dir")
+            .arg(&redis_dir)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .ok()?;
+        let mut redis = Redis {
+            child,
+            port,
+            trace,
+            _dir: dir,
+        };
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            if Instant::now() > deadline || redis.child.try_wait().ok().flatten().is_some() {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Some(redis)
+    }
+
+    fn url(&self) -> String {
+        format!("redis://127.0.0.1:{}", self.port)
+    }
+}
+
+/// The `fsync`s and `fdatasync`s strace has written to `trace` so far.
+fn traced_syncs(trace: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(trace).ok()?;
+    let calls = text
+        .lines()
+        .filter(|l| (l.contains("fdatasync(") || l.contains("fsync(")) && !l.contains("resumed>"))
+        .count();
+    Some(calls as u64)
+}
+
+impl Drop for Redis {
+    /// Shuts the server down (killing `strace` would leave its tracee running).
+    fn drop(&mut self) {
+        use std::io::Write;
+        if let Ok(mut conn) = std::net::TcpStream::connect(("127.0.0.1", self.port)) {
+            let _ = conn.write_all(b"SHUTDOWN NOSAVE\r\n");
+        }
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Backend {
+    Memory,
+    Disk,
+    Redis,
+}
+
+impl Backend {
+    fn name(self) -> &'static str {
+        match self {
+            Backend::Memory => "memory",
+            Backend::Disk => "data dir",
+            Backend::Redis => "Redis (appendfsync always)",
+        }
+    }
+}
+
+/// One configuration: a store, a number of streams, all on one task or one task each.
+#[derive(Debug, Clone, Copy)]
+struct Setup {
+    backend: Backend,
+    streams: usize,
+    one_task: bool,
+}
+
+impl Setup {
+    fn tasks(&self) -> usize {
+        if self.one_task {
+            1
+        } else {
+            self.streams
+        }
+    }
+}
+
+/// One measured round of a configuration.
+#[derive(Default)]
 struct Round {
     changes: u64,
     wall: Duration,
-    syncs: u64,
+    commits: u64,
+    /// `None`: the store's syncs are not counted in this round.
+    syncs: Option<u64>,
     latencies: Vec<Duration>,
 }
 
-/// The results of one configuration over its rounds.
-struct Row {
-    name: String,
-    streams: usize,
-    per_sec: f64,
-    latency_ms: f64,
-    syncs_per_change: f64,
+/// A fresh registry over the backend's store: the registry, the commit counter and the
+/// syncs counted so far (the data dir's; the traced Redis's).
+async fn open(
+    backend: Backend,
+    redis: Option<&Redis>,
+    dir: &Path,
+) -> (Registry, Arc<Counted>, Box<dyn Fn() -> Option<u64>>) {
+    let (inner, syncs): (Arc<dyn Store>, Box<dyn Fn() -> Option<u64>>) = match backend {
+        Backend::Memory => (Arc::new(MemoryStore::new()), Box::new(|| Some(0))),
+        Backend::Disk => {
+            let store = DiskStore::open(dir).expect("data dir");
+            let counter = store.clone();
+            (
+                Arc::new(store),
+                Box::new(move || Some(counter.sync_count())),
+            )
+        }
+        Backend::Redis => {
+            let redis = redis.expect("a redis-server");
+            let store = RedisStore::open(&RedisOptions::new(redis.url()))
+                .await
+                .expect("Redis answers");
+            let trace = redis.trace.clone();
+            let count = move || traced_syncs(trace.as_deref()?);
+            (Arc::new(store), Box::new(count))
+        }
+    };
+    let counted = Arc::new(Counted {
+        inner,
+        commits: AtomicU64::new(0),
+    });
+    let (registry, _) = Registry::open(counted.clone(), Limits::default())
+        .await
+        .expect("registry");
+    (registry, counted, syncs)
 }
 
-fn summarise(name: &str, streams: usize, rounds: Vec<Round>) -> Row {
-    let mut rates: Vec<f64> = rounds
-        .iter()
-        .map(|r| r.changes as f64 / r.wall.as_secs_f64())
-        .collect();
-    let mut lat: Vec<f64> = rounds
-        .iter()
-        .flat_map(|r| r.latencies.iter().map(|d| d.as_secs_f64() * 1e3))
-        .collect();
-    let (syncs, changes) = rounds
-        .iter()
-        .fold((0, 0), |(s, c), r| (s + r.syncs, c + r.changes));
-    Row {
-        name: name.to_string(),
-        streams,
-        per_sec: median(&mut rates),
-        latency_ms: median(&mut lat),
-        syncs_per_change: syncs as f64 / changes as f64,
-    }
-}
-
-/// The group-commit store: `streams` tasks, each with its own committer, `per_stream`
-/// changes each (every offer scores higher than the last, so every commit changes the
-/// pool).
-async fn new_path(streams: usize, per_stream: u32) -> Round {
+/// `total` changes from `setup.streams` streams (each commits its share one after the
+/// other), on tasks named `tag`-i.
+async fn round(
+    setup: Setup,
+    redis: Option<&Redis>,
+    total: usize,
+    tag: &str,
+    count_syncs: bool,
+) -> Round {
     let dir = bench_dir();
-    let store = DiskStore::open(dir.path()).expect("open");
-    store.load().await.expect("load");
-    for s in 0..streams {
-        store
-            .create_task(&format!("t{s}"), &config())
+    let (registry, counted, syncs) = open(setup.backend, redis, dir.path()).await;
+    let mut tasks = Vec::new();
+    for i in 0..setup.tasks() {
+        let id = format!("{tag}-{i}");
+        let t = registry
+            .create(DEFAULT_TENANT, &id, &config().to_input(), None)
             .await
             .expect("create");
+        tasks.push(t);
     }
-    let before = store.commit_stats();
+    let per = total / setup.streams;
+    let (commits0, syncs0) = (counted.commits.load(Ordering::Relaxed), syncs());
     let t0 = Instant::now();
-    let mut joins = Vec::new();
-    for s in 0..streams {
-        let store: Arc<dyn Store> = Arc::new(store.clone());
-        joins.push(tokio::spawn(commit_episodes(
-            store,
-            format!("t{s}"),
-            per_stream,
-        )));
-    }
-    let mut latencies = Vec::new();
-    for j in joins {
-        latencies.extend(j.await.expect("committer"));
-    }
-    let wall = t0.elapsed();
-    let after = store.commit_stats();
-    Round {
-        changes: after.changes - before.changes,
-        wall,
-        syncs: after.syncs - before.syncs,
-        latencies,
-    }
-}
-
-/// The previous commit path's file steps for one inserted trajectory: the trajectory
-/// file written and fsynced, `traj/` fsynced, `pool.json` written to a temporary file,
-/// fsynced, renamed, the task directory fsynced.
-fn old_commit(task: &Path, seq: u64, traj: &[u8], pool_json: &[u8]) -> std::io::Result<()> {
-    let mut f = File::create(task.join("traj").join(format!("{seq:020}.traj")))?;
-    f.write_all(traj)?;
-    f.sync_all()?;
-    File::open(task.join("traj"))?.sync_all()?;
-    let tmp = task.join("pool.json.tmp");
-    let mut f = File::create(&tmp)?;
-    f.write_all(pool_json)?;
-    f.sync_all()?;
-    fs::rename(&tmp, task.join("pool.json"))?;
-    File::open(task)?.sync_all()
-}
-
-/// The previous path, `streams` threads each on its own task directory.
-fn old_path(streams: usize, per_stream: u32) -> Round {
-    let dir = bench_dir();
-    let t0 = Instant::now();
-    let threads: Vec<_> = (0..streams)
+    let joins: Vec<_> = (0..setup.streams)
         .map(|s| {
-            let task: PathBuf = dir.path().join(format!("t{s}"));
-            std::thread::spawn(move || {
-                fs::create_dir_all(task.join("traj")).expect("task dir");
-                // Sizes as the store writes them: 4 bytes per action plus a 48-byte
-                // frame; pool.json grows by a seq per trajectory.
-                let traj = vec![0u8; 4 * EPISODE_LEN as usize + 48];
-                let mut lat = Vec::with_capacity(per_stream as usize);
-                for i in 0..per_stream {
-                    let seqs: Vec<String> = (1..=u64::from(i) + 1).map(|s| s.to_string()).collect();
-                    let json = format!(
-                        "{{\"format\": 1, \"pool_version\": {}, \"next_seq\": {}, \"seqs\": [{}], \"episodes_completed\": 0, \"steps_shaped\": 0}}",
-                        i + 1,
-                        i + 2,
-                        seqs.join(", ")
-                    );
+            let task = tasks[if setup.one_task { 0 } else { s }].clone();
+            tokio::spawn(async move {
+                let mut lat = Vec::with_capacity(per);
+                for i in 0..per {
+                    let n = (s * per + i) as u32;
                     let t = Instant::now();
-                    old_commit(&task, u64::from(i) + 1, &traj, json.as_bytes()).expect("old commit");
+                    let (stored, _) = task.offer(episode(n), f64::from(n)).await.expect("offer");
                     lat.push(t.elapsed());
+                    assert!(stored, "the pool is never full here");
                 }
                 lat
             })
         })
         .collect();
-    let mut latencies = Vec::new();
-    for t in threads {
-        latencies.extend(t.join().expect("thread"));
+    let mut latencies = Vec::with_capacity(total);
+    for j in joins {
+        latencies.extend(j.await.expect("stream"));
     }
     let wall = t0.elapsed();
-    let changes = latencies.len() as u64;
+    let changes: u64 = tasks.iter().map(|t| t.published_version()).sum();
+    assert_eq!(
+        changes,
+        (per * setup.streams) as u64,
+        "one version per change"
+    );
+    let commits = counted.commits.load(Ordering::Relaxed) - commits0;
+    let syncs = match (count_syncs, syncs0, syncs()) {
+        (true, Some(a), Some(b)) => Some(b - a),
+        _ => None,
+    };
+    for i in 0..setup.tasks() {
+        let _ = registry.delete(DEFAULT_TENANT, &format!("{tag}-{i}")).await;
+    }
     Round {
         changes,
         wall,
-        syncs: 4 * changes,
+        commits,
+        syncs,
         latencies,
     }
 }
@@ -184,64 +396,206 @@ fn fdatasync_floor(n: usize) -> Round {
     Round {
         changes: n as u64,
         wall: t0.elapsed(),
-        syncs: n as u64,
+        commits: n as u64,
+        syncs: Some(n as u64),
         latencies,
     }
 }
 
+/// The results of one configuration over its rounds.
+struct Row {
+    name: String,
+    streams: usize,
+    tasks: String,
+    per_sec: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    commits_per_change: f64,
+    syncs_per_change: Option<f64>,
+}
+
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+fn summarise(
+    name: &str,
+    streams: usize,
+    tasks: String,
+    rounds: &[Round],
+    synced: Option<&Round>,
+) -> Row {
+    let mut rates: Vec<f64> = rounds
+        .iter()
+        .map(|r| r.changes as f64 / r.wall.as_secs_f64())
+        .collect();
+    rates.sort_by(f64::total_cmp);
+    let mut lat: Vec<f64> = rounds
+        .iter()
+        .flat_map(|r| r.latencies.iter().map(|d| d.as_secs_f64() * 1e3))
+        .collect();
+    lat.sort_by(f64::total_cmp);
+    let (changes, commits) = rounds
+        .iter()
+        .fold((0, 0), |(c, k), r| (c + r.changes, k + r.commits));
+    let counted: Vec<&Round> = match synced {
+        Some(r) => vec![r],
+        None => rounds.iter().filter(|r| r.syncs.is_some()).collect(),
+    };
+    let synced_changes: u64 = counted.iter().map(|r| r.changes).sum();
+    let syncs: u64 = counted.iter().filter_map(|r| r.syncs).sum();
+    Row {
+        name: name.to_string(),
+        streams,
+        tasks,
+        per_sec: quantile(&rates, 0.5),
+        p50_ms: quantile(&lat, 0.5),
+        p99_ms: quantile(&lat, 0.99),
+        commits_per_change: commits as f64 / changes as f64,
+        syncs_per_change: (!counted.is_empty() && synced_changes > 0)
+            .then(|| syncs as f64 / synced_changes as f64),
+    }
+}
+
 fn main() {
-    // `cargo bench` passes `--bench`; nothing else is understood.
+    // `cargo bench` passes `--bench`; `--quick` is the only option.
     let quick = std::env::args().any(|a| a == "--quick");
-    let (one, eight) = if quick { (40, 20) } else { (200, 100) };
+    let (rounds, total) = if quick { (2, 192) } else { (5, 960) };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .expect("runtime");
-    // Rounds interleave the configurations, so that all of them see the same noise of a
-    // shared disk.
-    let mut rounds: Vec<Vec<Round>> = (0..5).map(|_| Vec::new()).collect();
-    for _ in 0..ROUNDS {
-        rounds[0].push(fdatasync_floor(one as usize));
-        for (k, (streams, per)) in [(1usize, one), (8, eight)].into_iter().enumerate() {
-            rounds[1 + 2 * k].push(old_path(streams, per));
-            rounds[2 + 2 * k].push(rt.block_on(new_path(streams, per)));
+    let redis = Redis::start(false);
+    let traced = redis.as_ref().and_then(|_| {
+        let strace = Command::new("strace").arg("-V").output().is_ok();
+        if strace {
+            Redis::start(true)
+        } else {
+            None
+        }
+    });
+    if redis.is_none() {
+        eprintln!("redis-server is not on the PATH: the Redis rows are left out");
+    } else if traced.is_none() {
+        eprintln!("strace is not available: Redis's syncs are not counted");
+    }
+    let backends: Vec<Backend> = [Backend::Memory, Backend::Disk, Backend::Redis]
+        .into_iter()
+        .filter(|b| *b != Backend::Redis || redis.is_some())
+        .collect();
+    let mut setups = Vec::new();
+    for &backend in &backends {
+        for streams in STREAMS {
+            for one_task in [true, false] {
+                if streams > 1 || one_task {
+                    setups.push(Setup {
+                        backend,
+                        streams,
+                        one_task,
+                    });
+                }
+            }
         }
     }
-    let names = [
-        ("fdatasync of a 1 KB append (floor)", 1),
-        ("previous path (4 fsyncs per change)", 1),
-        ("commit log, group commit", 1),
-        ("previous path (4 fsyncs per change)", 8),
-        ("commit log, group commit", 8),
-    ];
-    let rows: Vec<Row> = names
-        .iter()
-        .zip(rounds)
-        .map(|(&(name, streams), r)| summarise(name, streams, r))
-        .collect();
+    let mut results: Vec<Vec<Round>> = setups.iter().map(|_| Vec::new()).collect();
+    let mut floor = Vec::new();
+    for r in 0..rounds {
+        floor.push(fdatasync_floor(total / 4));
+        for (k, setup) in setups.iter().enumerate() {
+            let tag = format!("r{r}c{k}");
+            let done = rt.block_on(round(*setup, redis.as_ref(), total, &tag, true));
+            results[k].push(done);
+        }
+    }
+    // Redis's syncs, on the traced server: one untimed round per configuration.
+    let mut redis_syncs: Vec<Option<Round>> = setups.iter().map(|_| None).collect();
+    if let Some(traced) = &traced {
+        for (k, setup) in setups.iter().enumerate() {
+            if setup.backend == Backend::Redis {
+                let tag = format!("traced-c{k}");
+                let done = rt.block_on(round(*setup, Some(traced), total, &tag, true));
+                redis_syncs[k] = Some(done).filter(|d| d.syncs.is_some());
+            }
+        }
+    }
+    let mut rows = vec![summarise(
+        "fdatasync of a 1 KB append (floor)",
+        1,
+        "—".into(),
+        &floor,
+        None,
+    )];
+    for (k, setup) in setups.iter().enumerate() {
+        let tasks = if setup.one_task {
+            "one".to_string()
+        } else {
+            format!("{} (one each)", setup.tasks())
+        };
+        let synced = match setup.backend {
+            Backend::Redis => redis_syncs[k].as_ref(),
+            _ => None,
+        };
+        let mut row = summarise(
+            setup.backend.name(),
+            setup.streams,
+            tasks,
+            &results[k],
+            synced,
+        );
+        if setup.backend == Backend::Redis && synced.is_none() {
+            row.syncs_per_change = None;
+        }
+        rows.push(row);
+    }
     println!(
-        "episodes of {EPISODE_LEN} actions; {ROUNDS} rounds of {one} changes (1 stream) / 8 x {eight} (8 streams); medians"
+        "episodes of {EPISODE_LEN} actions; {rounds} rounds of {total} changes per configuration (split over its streams); changes/s: median over rounds; latency: over every commit"
     );
     println!(
-        "| path | streams | changes/s | commit latency (ms) | syncs per change |\n|---|---:|---:|---:|---:|"
+        "| store | streams | tasks | changes/s | commit p50 (ms) | commit p99 (ms) | store commits per change | syncs per change |\n|---|---:|---|---:|---:|---:|---:|---:|"
     );
     for r in &rows {
+        let syncs = r
+            .syncs_per_change
+            .map_or("—".to_string(), |s| format!("{s:.3}"));
         println!(
-            "| {} | {} | {:.0} | {:.2} | {:.3} |",
-            r.name, r.streams, r.per_sec, r.latency_ms, r.syncs_per_change
+            "| {} | {} | {} | {:.0} | {:.2} | {:.2} | {:.3} | {} |",
+            r.name, r.streams, r.tasks, r.per_sec, r.p50_ms, r.p99_ms, r.commits_per_change, syncs
         );
     }
-    for streams in [1, 8] {
-        let find = |prefix: &str| {
+    for &backend in &backends {
+        let find = |streams: usize, one: bool| {
             rows.iter()
-                .find(|r| r.streams == streams && r.name.starts_with(prefix))
-                .map(|r| r.per_sec)
-                .unwrap_or(f64::NAN)
+                .zip(std::iter::once(None).chain(setups.iter().map(Some)))
+                .find(|(_, s)| {
+                    s.is_some_and(|s| {
+                        s.backend == backend && s.streams == streams && s.one_task == one
+                    })
+                })
+                .map(|(r, _)| r)
         };
+        let (Some(one), Some(eight)) = (find(1, true), find(8, true)) else {
+            continue;
+        };
+        let speedup = eight.per_sec / one.per_sec;
+        let syncs = eight
+            .syncs_per_change
+            .map_or("not counted".to_string(), |s| {
+                format!("{s:.2} syncs per change")
+            });
         println!(
-            "{streams} stream(s): commit log / previous path = {:.1}x changes per second",
-            find("commit log") / find("previous")
+            "{}: 8 streams on one task: {syncs}, {speedup:.1}x the one-stream changes/s",
+            backend.name()
         );
+        if backend == Backend::Disk {
+            let met = eight.syncs_per_change.is_some_and(|s| s <= 0.5) && speedup >= 3.0;
+            println!(
+                "target (data dir, 8 streams on one task: <= 0.5 syncs per change and >= 3x the one-stream changes/s): {}",
+                if met { "met" } else { "not met" }
+            );
+        }
     }
 }
