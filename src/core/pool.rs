@@ -352,11 +352,56 @@ impl Pool {
         self.apply_with(change, false);
     }
 
-    /// Lays the pool out by step, after changes applied with
-    /// [`Pool::apply_without_layout`]: the pool [`Pool::apply`] would have made of them.
-    /// One layout for several changes costs what one change does.
-    pub fn lay_out(&mut self) {
-        self.build_by_step();
+    /// Lays the pool out by step after changes applied to `before` with
+    /// [`Pool::apply_without_layout`]: the pool [`Pool::apply`] would have made of them,
+    /// for the cost of one change. From `before`'s layout when it has one: its rows
+    /// without the columns of the trajectories that left, plus the new ones (inserts
+    /// append: seqs increase), copied a row at a time; the same cells as
+    /// [`Pool::build_by_step`].
+    pub fn lay_out_from(&mut self, before: &Pool) {
+        let old_n = before.trajectories.len();
+        let laid_out = before.step_rows > 0 || old_n == 0;
+        let Some(cols) = self.step_columns().filter(|_| laid_out) else {
+            return self.build_by_step();
+        };
+        // The trajectories `before` still has here come first, in order; the rest are new.
+        let mut kept = Vec::with_capacity(old_n);
+        for (i, seq) in before.seqs.iter().enumerate() {
+            if self.seqs.get(kept.len()) == Some(seq) {
+                kept.push(i);
+            }
+        }
+        let fresh = kept.len();
+        if self.seqs[fresh..].iter().any(|&s| s < before.next_seq) {
+            return self.build_by_step();
+        }
+        // Runs of consecutive kept columns, each copied as one slice.
+        let runs: Vec<(usize, usize)> = kept
+            .chunk_by(|a, b| b == &(a + 1))
+            .map(|run| (run[0], run[run.len() - 1] + 1))
+            .collect();
+        let n = self.trajectories.len();
+        let l_max = self.lens.iter().copied().max().unwrap_or(0);
+        let mut rows = Vec::with_capacity(n * l_max);
+        for t in 0..l_max {
+            let old_row = before
+                .by_step
+                .get(t * old_n..(t + 1) * old_n)
+                .filter(|_| t < before.step_rows);
+            match old_row {
+                Some(row) => runs
+                    .iter()
+                    .for_each(|&(a, b)| rows.extend_from_slice(&row[a..b])),
+                None => rows.resize(rows.len() + fresh, NO_ACTION),
+            }
+            rows.extend(
+                cols[fresh..]
+                    .iter()
+                    .map(|c| c.get(t).copied().unwrap_or(NO_ACTION)),
+            );
+        }
+        self.by_step = Arc::new(rows);
+        self.step_rows = l_max;
     }
 
     fn apply_with(&mut self, change: &PoolChange, lay_out: bool) {
@@ -581,6 +626,44 @@ mod tests {
                 for (place, &i) in p.by_place().iter().enumerate() {
                     assert_eq!(p.place_of()[i as usize] as usize, place);
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn laying_out_several_changes_at_once_gives_the_cells_of_a_full_layout() {
+        let mut state = 0x51af_d7ed_558c_cd1du64;
+        let mut next = |m: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state % m
+        };
+        for capacity in [1, 2, 5, 30] {
+            let mut p = Pool::new(capacity);
+            for _ in 0..150 {
+                let before = p.clone();
+                for _ in 0..next(6) {
+                    if next(25) == 0 {
+                        p.apply_without_layout(&p.plan_reset());
+                        continue;
+                    }
+                    // Mostly alike lengths, sometimes a ragged one (no layout then).
+                    let len = if next(6) == 0 {
+                        1 + next(3000)
+                    } else {
+                        20 + next(10)
+                    } as usize;
+                    let actions = (0..len).map(|_| next(3) as u32).collect();
+                    if let Some(c) = p.plan_offer(ActionSeq::Discrete(actions), next(50) as f64) {
+                        p.apply_without_layout(&c);
+                    }
+                }
+                p.lay_out_from(&before);
+                let mut fresh = p.clone();
+                fresh.build_by_step();
+                assert_eq!(p.step_rows, fresh.step_rows);
+                assert_eq!(p.by_step, fresh.by_step);
             }
         }
     }

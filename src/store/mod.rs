@@ -193,34 +193,22 @@ impl StoreError {
 
 /// Applies `ops` in order to a copy of `base` (SPEC §6), as a store that owns its pools
 /// does. Returns the new pool and, per op, whether it changed the pool. The pool is laid
-/// out by step once, at the end (a group of changes pays for one layout, not one each).
+/// out by step once, at the end, from `base`'s layout (a group of changes costs one
+/// layout, not one each).
 pub fn apply_ops(base: &Pool, ops: Vec<PoolOp>) -> (Pool, Vec<bool>) {
     let mut pool = base.clone();
-    let last = ops.len().saturating_sub(1);
-    let mut unlaid = false;
-    let changed = ops
+    let changed: Vec<bool> = ops
         .into_iter()
-        .enumerate()
-        .map(|(i, op)| {
+        .map(|op| {
             let change = match op {
                 PoolOp::Offer { actions, score, .. } => pool.plan_offer(actions, score),
                 PoolOp::Reset => Some(pool.plan_reset()),
             };
-            let Some(change) = change else {
-                return false;
-            };
-            if i == last && !unlaid {
-                // One change (or the last after discards): laid out as it goes.
-                pool.apply(&change);
-            } else {
-                pool.apply_without_layout(&change);
-                unlaid = true;
-            }
-            true
+            change.map(|c| pool.apply_without_layout(&c)).is_some()
         })
         .collect();
-    if unlaid {
-        pool.lay_out();
+    if changed.contains(&true) {
+        pool.lay_out_from(base);
     }
     (pool, changed)
 }
@@ -376,7 +364,7 @@ mod tests {
             state ^= state << 17;
             state % m
         };
-        for capacity in [1, 3, 8] {
+        for capacity in [1, 3, 8, 40] {
             let mut pool = Pool::new(capacity);
             for _ in 0..60 {
                 let ops: Vec<PoolOp> = (0..next(6))
