@@ -8,10 +8,12 @@
 //! own count; Redis's `fdatasync`s counted by `strace` on a second, untimed
 //! `redis-server`, when strace is installed).
 //!
-//! `cargo bench --bench commits` (about two minutes), `-- --quick` for a short run. Every
-//! stream commits 200-action episodes one after the other (pool capacity 1000, never
-//! full: every offer is a change); the configurations are interleaved round by round, so
-//! that all of them see the same noise of a shared machine. Data dirs (and Redis's
+//! `cargo bench --bench commits` (a few seconds to a minute), `-- --quick` for a short
+//! run, `-- --capacity N` for pools of N trajectories (default 20, SPEC §1.1's default).
+//! Every stream commits 200-action episodes one after the other, each scoring higher than
+//! every earlier one of its task, so every offer is a change (an insert, then a
+//! replacement once the pool is full); the configurations are interleaved round by round,
+//! so that all of them see the same noise of a shared machine. Data dirs (and Redis's
 //! directories) go under `$TAMRM_BENCH_DIR` if set, else the system temp dir: put it on
 //! the disk you want to measure (tmpfs makes every sync free).
 
@@ -24,7 +26,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tamrm::core::{Pool, TaskConfig};
+use tamrm::core::{Pool, TaskConfig, TaskConfigInput};
 use tamrm::limits::Limits;
 use tamrm::registry::{Registry, DEFAULT_TENANT};
 use tamrm::store::{
@@ -35,7 +37,7 @@ use tamrm::store::{
 #[path = "common/commits.rs"]
 #[allow(dead_code)]
 mod common;
-use common::{config, episode, EPISODE_LEN};
+use common::{episode, EPISODE_LEN};
 
 const STREAMS: [usize; 3] = [1, 8, 64];
 
@@ -247,12 +249,14 @@ impl Backend {
     }
 }
 
-/// One configuration: a store, a number of streams, all on one task or one task each.
+/// One configuration: a store, a number of streams, all on one task or one task each,
+/// pools of `capacity`.
 #[derive(Debug, Clone, Copy)]
 struct Setup {
     backend: Backend,
     streams: usize,
     one_task: bool,
+    capacity: u32,
 }
 
 impl Setup {
@@ -327,26 +331,41 @@ async fn round(
     let mut tasks = Vec::new();
     for i in 0..setup.tasks() {
         let id = format!("{tag}-{i}");
+        let input = TaskConfigInput {
+            num_actions: 4,
+            pool_capacity: Some(setup.capacity),
+            ..Default::default()
+        };
         let t = registry
-            .create(DEFAULT_TENANT, &id, &config().to_input(), None)
+            .create(DEFAULT_TENANT, &id, &input, None)
             .await
             .expect("create");
         tasks.push(t);
     }
     let per = total / setup.streams;
     let (commits0, syncs0) = (counted.commits.load(Ordering::Relaxed), syncs());
+    // Scores in planning order (taken under the task's writer lock): each offer beats
+    // every trajectory of its pool, so each one is a change.
+    let scores = Arc::new(AtomicU64::new(0));
     let t0 = Instant::now();
     let joins: Vec<_> = (0..setup.streams)
         .map(|s| {
             let task = tasks[if setup.one_task { 0 } else { s }].clone();
+            let scores = scores.clone();
             tokio::spawn(async move {
                 let mut lat = Vec::with_capacity(per);
-                for i in 0..per {
-                    let n = (s * per + i) as u32;
+                for _ in 0..per {
                     let t = Instant::now();
-                    let (stored, _) = task.offer(episode(n), f64::from(n)).await.expect("offer");
+                    let w = task.writer().await.expect("writer");
+                    let n = scores.fetch_add(1, Ordering::Relaxed);
+                    let offer = PoolOp::Offer {
+                        actions: episode(n as u32),
+                        score: n as f64,
+                        end: None,
+                    };
+                    let c = task.commit(w, vec![offer]).await.expect("commit");
                     lat.push(t.elapsed());
-                    assert!(stored, "the pool is never full here");
+                    assert_eq!(c.changed, vec![true], "every offer is a change");
                 }
                 lat
             })
@@ -461,8 +480,14 @@ fn summarise(
 }
 
 fn main() {
-    // `cargo bench` passes `--bench`; `--quick` is the only option.
-    let quick = std::env::args().any(|a| a == "--quick");
+    // `cargo bench` passes `--bench`; `--quick` and `--capacity N` are the options.
+    let args: Vec<String> = std::env::args().collect();
+    let quick = args.iter().any(|a| a == "--quick");
+    let capacity: u32 = args
+        .iter()
+        .position(|a| a == "--capacity")
+        .and_then(|i| args.get(i + 1))
+        .map_or(20, |c| c.parse().expect("--capacity N"));
     let (rounds, total) = if quick { (2, 192) } else { (5, 960) };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -496,6 +521,7 @@ fn main() {
                         backend,
                         streams,
                         one_task,
+                        capacity,
                     });
                 }
             }
@@ -552,7 +578,7 @@ fn main() {
         rows.push(row);
     }
     println!(
-        "episodes of {EPISODE_LEN} actions; {rounds} rounds of {total} changes per configuration (split over its streams); changes/s: median over rounds; latency: over every commit"
+        "pools of capacity {capacity}, episodes of {EPISODE_LEN} actions; {rounds} rounds of {total} changes per configuration (split over its streams); changes/s: median over rounds; latency: over every commit"
     );
     println!(
         "| store | streams | tasks | changes/s | commit p50 (ms) | commit p99 (ms) | store commits per change | syncs per change |\n|---|---:|---|---:|---:|---:|---:|---:|"
