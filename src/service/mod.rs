@@ -93,19 +93,7 @@ impl ShapingService {
         &self,
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<ReceiverStream<Result<A, Status>>>, Status> {
-        let caller = self.caller(&request)?;
-        let slot = caller.open_stream()?;
-        let inbound = request.into_inner();
-        let (tx, rx) = tokio::sync::mpsc::channel(2);
-        tokio::spawn(stream::run(
-            self.registry.clone(),
-            self.shutdown.clone(),
-            (caller, slot),
-            self.metrics.clone(),
-            inbound,
-            tx,
-        ));
-        Ok(Response::new(ReceiverStream::new(rx)))
+        self.start_stream(request, stream::run::<A>)
     }
 
     /// Starts a Follow stream (SPEC §13).
@@ -113,11 +101,31 @@ impl ShapingService {
         &self,
         request: Request<Streaming<proto::FollowRequest>>,
     ) -> Result<Response<ReceiverStream<Result<proto::FollowResponse, Status>>>, Status> {
+        self.start_stream(request, follow::run)
+    }
+
+    /// Takes one of the caller's stream slots and spawns `run`, which drives the stream
+    /// to its end and sends its answers (two at most queued).
+    fn start_stream<Req, Resp, Fut>(
+        &self,
+        request: Request<Streaming<Req>>,
+        run: impl FnOnce(
+            Arc<Registry>,
+            CancellationToken,
+            (Caller, crate::auth::StreamSlot),
+            Option<Arc<Metrics>>,
+            Streaming<Req>,
+            tokio::sync::mpsc::Sender<Result<Resp, Status>>,
+        ) -> Fut,
+    ) -> Result<Response<ReceiverStream<Result<Resp, Status>>>, Status>
+    where
+        Fut: std::future::Future<Output = ()> + Send + 'static,
+    {
         let caller = self.caller(&request)?;
         let slot = caller.open_stream()?;
         let inbound = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
-        tokio::spawn(follow::run(
+        tokio::spawn(run(
             self.registry.clone(),
             self.shutdown.clone(),
             (caller, slot),

@@ -17,7 +17,7 @@ use crate::error::Error;
 use crate::registry::{Registry, StreamBytes, StreamGuard, TaskHandle, DEFAULT_TENANT};
 use crate::store::{EndMark, PoolOp};
 
-use super::validate_task_id;
+use super::check_open;
 
 /// Most steps one message may report: far more than a learner shapes between two of its
 /// messages, far below what could overflow the task's counter.
@@ -115,17 +115,7 @@ pub struct FollowSession {
 impl FollowSession {
     /// Opens a Follow stream on `req.task_id` (SPEC §13).
     pub async fn open(registry: &Registry, req: &FollowRequest<'_>) -> Result<Self, Error> {
-        validate_task_id("open.task_id", req.task_id)?;
-        if req.num_envs == 0 {
-            return Err(Error::invalid("open.num_envs", "must be >= 1"));
-        }
-        let max = registry.limits().max_envs_per_stream;
-        if req.num_envs > max {
-            return Err(Error::ResourceExhausted(format!(
-                "open.num_envs: {} exceeds this server's limit max_envs_per_stream = {max}",
-                req.num_envs
-            )));
-        }
+        check_open(registry, req.task_id, req.num_envs)?;
         let task = registry.lookup(req.tenant, req.task_id).await?;
         // The episodes live at the learner: the stream holds its window and a pool copy
         // it shares with the task.

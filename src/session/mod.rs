@@ -131,6 +131,22 @@ pub fn validate_task_id(field: &str, id: &str) -> Result<(), Error> {
     Ok(())
 }
 
+/// The checks every stream's `open` makes before it looks the task up: the task id, and
+/// `num_envs` (≥ 1, within `max_envs_per_stream`).
+fn check_open(registry: &Registry, task_id: &str, num_envs: u32) -> Result<(), Error> {
+    validate_task_id("open.task_id", task_id)?;
+    if num_envs == 0 {
+        return Err(Error::invalid("open.num_envs", "must be >= 1"));
+    }
+    let max = registry.limits().max_envs_per_stream;
+    if num_envs > max {
+        return Err(Error::ResourceExhausted(format!(
+            "open.num_envs: {num_envs} exceeds this server's limit max_envs_per_stream = {max}"
+        )));
+    }
+    Ok(())
+}
+
 /// Runs CPU work that may take long without stalling a multi-threaded async runtime:
 /// the current worker hands its other tasks off first. Inline elsewhere.
 fn cpu<R>(long: bool, f: impl FnOnce() -> R) -> R {
@@ -155,17 +171,7 @@ enum Stop {
 impl StreamSession {
     /// Opens a session on `req.task_id` (SPEC §7: `Open`).
     pub async fn open(registry: &Registry, req: &OpenRequest<'_>) -> Result<StreamSession, Error> {
-        validate_task_id("open.task_id", req.task_id)?;
-        if req.num_envs == 0 {
-            return Err(Error::invalid("open.num_envs", "must be >= 1"));
-        }
-        let max = registry.limits().max_envs_per_stream;
-        if req.num_envs > max {
-            return Err(Error::ResourceExhausted(format!(
-                "open.num_envs: {} exceeds this server's limit max_envs_per_stream = {max}",
-                req.num_envs
-            )));
-        }
+        check_open(registry, req.task_id, req.num_envs)?;
         let task = registry.lookup(req.tenant, req.task_id).await?;
         let config = *task.config();
         let bytes = config
