@@ -194,7 +194,7 @@ async fn learner(
                         let held = pool.as_mut().expect("snapshot first");
                         assert_eq!(u.base_version, held.version(), "an update with a gap");
                         local.arrivals.push((u.pool_version, now));
-                        if id % VERIFIED == 0 {
+                        if id.is_multiple_of(VERIFIED) {
                             let added = u.added.into_iter().map(trajectory).collect();
                             *held = held.with_update(&u.removed, added, u.pool_version, u.next_seq).expect("update applies");
                         } else {
