@@ -280,14 +280,17 @@ struct Round {
     latencies: Vec<Duration>,
 }
 
+/// The syncs a store has issued so far, if they are counted.
+type SyncCount = Box<dyn Fn() -> Option<u64>>;
+
 /// A fresh registry over the backend's store: the registry, the commit counter and the
 /// syncs counted so far (the data dir's; the traced Redis's).
 async fn open(
     backend: Backend,
     redis: Option<&Redis>,
     dir: &Path,
-) -> (Registry, Arc<Counted>, Box<dyn Fn() -> Option<u64>>) {
-    let (inner, syncs): (Arc<dyn Store>, Box<dyn Fn() -> Option<u64>>) = match backend {
+) -> (Registry, Arc<Counted>, SyncCount) {
+    let (inner, syncs): (Arc<dyn Store>, SyncCount) = match backend {
         Backend::Memory => (Arc::new(MemoryStore::new()), Box::new(|| Some(0))),
         Backend::Disk => {
             let store = DiskStore::open(dir).expect("data dir");

@@ -72,13 +72,16 @@ impl Planned {
     }
 }
 
+/// The episode ends a request commits for a named client (SPEC §9): the client, and each
+/// (env, episode).
+pub(super) type Marks = (Arc<str>, Vec<(u32, u64)>);
+
 /// One writer's planned change, waiting for its group's commit.
 pub(super) struct Request {
     /// Its place in planning order (from 1).
     pub number: u64,
     pub ops: Vec<PoolOp>,
-    /// The episode ends it commits for a named client (SPEC §9): client, (env, episode).
-    pub marks: Option<(Arc<str>, Vec<(u32, u64)>)>,
+    pub marks: Option<Marks>,
     pub answer: oneshot::Sender<Result<Committed, Error>>,
 }
 

@@ -57,6 +57,17 @@ async fn spawn_commit(
     tokio::spawn(async move { t.commit(w, ops).await })
 }
 
+/// [`spawn_commit`] for the episode ends `marks` of client "c".
+async fn spawn_ends(
+    t: &Arc<TaskHandle>,
+    ops: Vec<PoolOp>,
+    marks: Vec<(u32, u64)>,
+) -> tokio::task::JoinHandle<Result<Committed, Error>> {
+    let w = t.writer().await.unwrap();
+    let t = t.clone();
+    tokio::spawn(async move { t.commit_ends(w, ops, Some(("c", &marks))).await })
+}
+
 /// Yields until `n` requests are queued behind the group in flight (panics after 10 s).
 async fn queued(t: &TaskHandle, n: usize) {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
@@ -250,13 +261,7 @@ async fn ends_in_flight_count_as_ended_until_their_group_fails() {
             episode,
         }),
     };
-    let commit_ends = |ops: Vec<PoolOp>, marks: Vec<(u32, u64)>| {
-        let t = t.clone();
-        async move {
-            let w = t.writer().await.unwrap();
-            tokio::spawn(async move { t.commit_ends(w, ops, Some(("c", &marks))).await })
-        }
-    };
+    let commit_ends = |ops, marks| spawn_ends(&t, ops, marks);
     store.hold();
     let a = commit_ends(vec![end(0, 0, 1.0)], vec![(0, 0)]).await;
     store.started(1).await;
