@@ -38,9 +38,9 @@ machine's load drifts over all variants alike. The A2C runs go further (``--a2c-
 :func:`a2c_turns`): in each repeat every variant's model is built in one process and they
 learn in turns of 400 timesteps (about a quarter of a second), so that even the drift of
 this machine's speed within a run, tens of percent over seconds, falls on all alike.
-The table (markdown, to paste into docs/python.md) gives per workload and variant the
-median time, the throughput, the median over repeats of the overhead against that repeat's
-plain run, and the overhead per vector step::
+The table (markdown, to paste into docs/python-performance.md) gives per workload and
+variant the median time, the throughput, the median over repeats of the overhead against
+that repeat's plain run, and the overhead per vector step::
 
     python clients/python/benchmarks/overhead.py            # full (5 repeats)
     python clients/python/benchmarks/overhead.py --quick    # a fast smoke run

@@ -23,7 +23,8 @@ loopback send's delivery to the peer, which the sender's kernel does), and for
     TAMRM_BIN=target/release/tamrm python clients/python/benchmarks/round_trip_cpu.py
     python clients/python/benchmarks/round_trip_cpu.py --server-args=--worker-threads=1
 
-The results of 2026-12-04 are in docs/python.md ("Where the remote round trip goes").
+The results of 2026-12-04 are in docs/lab/2026-12-04-overhead.md ("Where the remote round
+trip goes").
 """
 
 from __future__ import annotations

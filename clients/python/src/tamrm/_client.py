@@ -502,10 +502,10 @@ class Client(TaskCalls, Closing):
             Polling keeps the calling thread's CPU awake, which on a machine whose idle
             CPUs are slow to wake (a VM) cuts the round trip to a server on the same host
             or a near one: SB3 A2C through a local server went from +49 % to +38 %
-            overhead with 200 (docs/python.md, "Overhead"). The price is that CPU, busy
-            for up to this long on every step: worth it when the training loop has
-            nothing else to do while it waits, not for a server far away (a round trip
-            longer than the poll gains nothing). At most 1 000 000.
+            overhead with 200 (docs/python-performance.md, "Overhead"). The price is
+            that CPU, busy for up to this long on every step: worth it when the training
+            loop has nothing else to do while it waits, not for a server far away (a
+            round trip longer than the poll gains nothing). At most 1 000 000.
 
     Each PEM argument is the file's contents as ``bytes``, or the path of the file
     (``str`` or ``os.PathLike``), read once here. A malformed PEM, or a path that cannot
