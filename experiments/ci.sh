@@ -2,7 +2,8 @@
 # Smoke test of the whole reproduction pipeline: lint, types, unit tests (the server backend
 # included, against a local tamrm server), the --quick grid (1 seed, tiny budgets, every
 # experiment x arm, each run on an embedded engine) and the report, written into a
-# temporary directory (docs/reproduction.md is untouched).
+# temporary directory (docs/reproduction.md is untouched); the runs recorded as the
+# committed archive records (add-runs) must give the same page.
 #
 # Env: TAMRM_VENV (default ./.venv, with clients/python[sb3] installed), TAMRM_BIN (default
 # target/release/tamrm). Called from .ci/run; takes 1-3 minutes.
@@ -40,5 +41,12 @@ if [ "$want_csv" -lt 40 ] || [ "$n_csv" -ne "$want_csv" ] || [ "$n_png" -ne "$wa
     echo "expected $want_csv run CSVs and $want_png plots, got $n_csv and $n_png" >&2
     exit 1
 fi
+echo "--- experiments: add-runs (the committed layout) and the report from it"
+"$py" -m tamrm_experiments add-runs --runs "$tmp/runs" --to "$tmp/archive"
+"$py" -m tamrm_experiments add-runs --runs "$tmp/runs" --to "$tmp/archive" | grep -q '^added 0 runs'
+cp "$tmp/report/reproduction.md" "$tmp/from-csv.md"
+"$py" -m tamrm_experiments report --runs "$tmp/archive" --out "$tmp/report/reproduction.md"
+# The same page from the records as from the CSVs, but for the runs directory's name.
+sed "s#$tmp/archive#$tmp/runs#g" "$tmp/report/reproduction.md" | diff - "$tmp/from-csv.md"
 echo "--- experiments: unit tests"
 "$py" -m pytest -q -p no:cacheprovider tests

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The one command of the reproduction (docs/reproduction.md): run every experiment x arm x
 # seed on all cores, each run on an embedded tamrm engine of its own (or on a server with
-# --address HOST:PORT; resumable: finished runs are skipped), then regenerate
-# docs/reproduction.md and its plots from the raw CSVs.
+# --address HOST:PORT), into experiments/runs/; record the finished runs in the committed
+# archive docs/reproduction/runs/ (add-runs: new runs only, one file each); regenerate
+# docs/reproduction.md, its plots and README.md's summary from the archive. Resumable:
+# runs finished in experiments/runs/ or recorded in the archive are skipped.
 #
 #   experiments/reproduce.sh                # paper profile, every variant, 5 seeds
 #   experiments/reproduce.sh --seeds 10     # more seeds (reuses the first 5)
@@ -17,17 +19,13 @@ root=$PWD
 py=${TAMRM_VENV:-$root/.venv-exp}/bin/python
 export TAMRM_BIN=${TAMRM_BIN:-$root/target/release/tamrm}
 export PYTHONPATH=$root/experiments${PYTHONPATH:+:$PYTHONPATH}
-runs=experiments/runs
-report=docs/reproduction.md
 for arg in "$@"; do
     if [ "$arg" = "--quick" ]; then
-        runs=experiments/runs-quick
-        report=experiments/runs-quick/reproduction.md
+        "$py" -m tamrm_experiments run --out experiments/runs-quick "$@"
+        exec "$py" -m tamrm_experiments report --runs experiments/runs-quick \
+            --out experiments/runs-quick/reproduction.md
     fi
 done
-"$py" -m tamrm_experiments run --out "$runs" "$@"
-previous=()
-if [ "$runs" = experiments/runs ] && [ -d experiments/runs-v1 ]; then
-    previous=(--previous experiments/runs-v1)  # the first report's runs, shown as clean-v1
-fi
-"$py" -m tamrm_experiments report --runs "$runs" --out "$report" "${previous[@]}"
+"$py" -m tamrm_experiments run --out experiments/runs "$@"
+"$py" -m tamrm_experiments add-runs --runs experiments/runs --to docs/reproduction/runs
+"$py" -m tamrm_experiments report --readme README.md

@@ -1,4 +1,4 @@
-"""The command line's arguments: one parser, used by ``cli`` to run and by ``report`` to
+"""The command line's arguments: one parser, used by ``cli`` to run and by the report to
 read back which runs each recorded grid invocation asked for."""
 
 from __future__ import annotations
@@ -9,14 +9,18 @@ from pathlib import Path
 
 from tamrm_experiments.configs import ARMS, EXPERIMENTS, FIDELITIES, PROFILES, all_variants
 
-__all__ = ["EXPERIMENTS_DIR", "parser"]
+__all__ = ["ARCHIVE", "ARCHIVE_V1", "EXPERIMENTS_DIR", "parser"]
 
 #: ``experiments/`` of the repository (defaults do not depend on the working directory).
 EXPERIMENTS_DIR = Path(__file__).resolve().parents[1]
+#: The committed runs behind ``docs/reproduction.md``, one record each (``add-runs``).
+ARCHIVE = EXPERIMENTS_DIR.parent / "docs" / "reproduction" / "runs"
+#: The first report's runs (shown as the ``clean-v1`` variant).
+ARCHIVE_V1 = EXPERIMENTS_DIR.parent / "docs" / "reproduction" / "runs-v1"
 
 
 def parser() -> argparse.ArgumentParser:
-    """The ``run`` and ``report`` command line."""
+    """The ``run``, ``add-runs`` and ``report`` command line."""
     top = argparse.ArgumentParser(
         prog="python -m tamrm_experiments",
         description="Reproduce the TAMRM paper's experiments with tamrm's shaping.",
@@ -65,11 +69,42 @@ def parser() -> argparse.ArgumentParser:
         help="shape on the tamrm server at this address (default: each run on an embedded "
         "engine of its own, tamrm.Engine(), in process)",
     )
+    run.add_argument(
+        "--archive",
+        type=Path,
+        default=ARCHIVE,
+        help="also skip the runs recorded with the same settings in this archive of "
+        "committed runs (default docs/reproduction/runs)",
+    )
+    run.add_argument(
+        "--no-archive", action="store_true", help="do not skip runs recorded in the archive"
+    )
     run.add_argument("--no-progress", action="store_true", help="no progress bars")
     run.add_argument("--dry-run", action="store_true", help="list the runs to do and exit")
 
+    add = sub.add_parser(
+        "add-runs",
+        help="record the finished runs of a runs directory in the archive of committed runs "
+        "(new runs only; an existing record is never rewritten)",
+    )
+    add.add_argument(
+        "--runs",
+        type=Path,
+        default=EXPERIMENTS_DIR / "runs",
+        help="the runs directory `run` wrote (default experiments/runs)",
+    )
+    add.add_argument(
+        "--to", type=Path, default=ARCHIVE, help="the archive (default docs/reproduction/runs)"
+    )
+
     rep = sub.add_parser("report", help="write the reproduction report from the raw runs")
-    rep.add_argument("--runs", type=Path, default=EXPERIMENTS_DIR / "runs")
+    rep.add_argument(
+        "--runs",
+        type=Path,
+        help="a runs directory: the archive (seedN.json.gz) or what `run` wrote (CSV + "
+        "JSON). Default: docs/reproduction/runs, with docs/reproduction/runs-v1 as "
+        "--previous",
+    )
     rep.add_argument("--out", type=Path, default=EXPERIMENTS_DIR.parent / "docs/reproduction.md")
     rep.add_argument(
         "--plots", type=Path, help="plots directory (default: the --out path without .md)"

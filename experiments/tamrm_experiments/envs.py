@@ -282,7 +282,9 @@ def random_policy_steps(experiment: str, max_steps: int, after_switch: bool = Fa
     if experiment == "mountaincar":
         return float(mountain_car_random_steps(max_steps).mean())
     if experiment == "cartpole":
-        env = TimeLimit(gym.make("CartPole-v1").unwrapped, max_episode_steps=max_steps)
+        env: TimeLimit[Any, Any] = TimeLimit(
+            gym.make("CartPole-v1").unwrapped, max_episode_steps=max_steps
+        )
         env.action_space.seed(0)
         lengths = []
         for episode in range(2000):

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from tamrm_experiments.archive import archive_path, read_meta
 from tamrm_experiments.configs import EXPERIMENTS, RunSpec
 
 __all__ = [
@@ -91,16 +92,22 @@ def run_paths(out: Path, spec: RunSpec) -> tuple[Path, Path, Path]:
     return stem.with_suffix(".csv"), stem.with_suffix(".csv.partial"), stem.with_suffix(".json")
 
 
-def is_complete(out: Path, spec: RunSpec) -> bool:
-    """Whether ``spec`` already has a finished run under ``out`` with the same settings."""
+def is_complete(out: Path, spec: RunSpec, archive: Path | None = None) -> bool:
+    """Whether ``spec`` already has a finished run with the same settings under ``out``
+    (CSV + sidecar) or, if given, in ``archive`` (the committed runs, one record each)."""
     csv_path, _, meta_path = run_paths(out, spec)
+    same_spec = json.loads(json.dumps(spec.to_dict()))
+    if archive is not None:
+        record = archive_path(archive, meta_path.relative_to(out))
+        if record.is_file() and read_meta(record).get("spec") == same_spec:
+            return True
     if not (csv_path.is_file() and meta_path.is_file()):
         return False
     try:
         meta = json.loads(meta_path.read_text())
     except (OSError, ValueError):
         return False
-    return bool(meta.get("complete")) and meta.get("spec") == json.loads(json.dumps(spec.to_dict()))
+    return bool(meta.get("complete")) and meta.get("spec") == same_spec
 
 
 def _git_rev() -> str:
@@ -512,8 +519,10 @@ def run_grid(
     jobs: int,
     address: str | None = None,
     show_progress: bool = True,
+    archive: Path | None = None,
 ) -> dict[str, Any]:
-    """Run every spec not yet complete under ``out`` on ``jobs`` processes.
+    """Run every spec not yet complete under ``out`` (nor in ``archive``, the committed
+    runs, if given) on ``jobs`` processes.
 
     Each run shapes on an embedded engine of its own, or on the server at ``address`` if
     given (no server is started here). Returns a summary (runs done, skipped, failed,
@@ -524,7 +533,7 @@ def run_grid(
     from tqdm import tqdm
 
     out.mkdir(parents=True, exist_ok=True)
-    todo = [s for s in specs if not is_complete(out, s)]
+    todo = [s for s in specs if not is_complete(out, s, archive)]
     skipped = len(specs) - len(todo)
     summary: dict[str, Any] = {
         "command": " ".join([Path(sys.executable).name, "-m", "tamrm_experiments", *sys.argv[1:]]),

@@ -13,6 +13,8 @@ __all__ = [
     "Interval",
     "first_solved_episode",
     "fisher_p",
+    "fmt",
+    "fmt_interval",
     "holm",
     "rolling_mean",
     "t_interval",
@@ -141,3 +143,19 @@ def holm(pvalues: Sequence[float]) -> list[float]:
         running = max(running, min(1.0, (m - rank) * p[i]))
         out[i] = running
     return out.tolist()
+
+
+def fmt(value: float | None, pattern: str) -> str:
+    """``value`` formatted with ``pattern`` (a ``str.format`` one), ``-`` if undefined."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return pattern.format(value)
+
+
+def fmt_interval(iv: Interval, pattern: str) -> str:
+    """``mean [low, high]``, ``mean (n=1)`` without bounds, ``-`` without values."""
+    if iv.n == 0:
+        return "-"
+    if iv.n == 1 or math.isnan(iv.low):
+        return f"{fmt(iv.mean, pattern)} (n=1)"
+    return f"{fmt(iv.mean, pattern)} [{fmt(iv.low, pattern)}, {fmt(iv.high, pattern)}]"

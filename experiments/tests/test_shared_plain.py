@@ -142,7 +142,7 @@ def test_report_compares_both_signs_with_the_one_plain_run(tmp_path):
     out = tmp_path / "reproduction.md"
     write_report(runs, out, tmp_path / "plots")
     text = out.read_text()
-    claims = text.split("## Claims")[1].split("## Status")[0]
+    claims = text.split("### In detail")[1].split("## Status")[0]
     rows = [line for line in claims.splitlines() if line.startswith("| Mountain car")]
     assert len(rows) == 2
     neg = next(r for r in rows if "alpha = beta = -1" in r)

@@ -107,7 +107,7 @@ def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
 
 
 def test_busy_minutes_is_the_union_of_invocation_intervals():
-    from tamrm_experiments.report import _busy_minutes
+    from tamrm_experiments.grid import busy_minutes
 
     def inv(start, finish):
         return {
@@ -122,9 +122,9 @@ def test_busy_minutes_is_the_union_of_invocation_intervals():
         inv("03:00", "03:10"),
         inv("00:10", "00:20"),
     ]
-    assert _busy_minutes(invs) == 100
-    assert _busy_minutes([*invs, {"started_utc": "2026-01-01T05:00:00Z"}]) == 100  # unfinished
-    assert _busy_minutes([]) == 0
+    assert busy_minutes(invs) == 100
+    assert busy_minutes([*invs, {"started_utc": "2026-01-01T05:00:00Z"}]) == 100  # unfinished
+    assert busy_minutes([]) == 0
 
 
 def test_holm_matches_the_textbook_example():

@@ -265,7 +265,7 @@ CLEAN_VARIANTS: tuple[Variant, ...] = (
         {"gate_potential": True},
         plain_from="clean",
     ),
-    # The first report's runs (docs/reproduction/raw-runs.tar.gz, runs-v1/): SB3 learners,
+    # The first report's runs (docs/reproduction/runs-v1/): SB3 learners,
     # the potential ungated, the reduced ``full`` budgets, the maze's DQN on the (x, y)
     # cell. Read by ``report --previous``; never run again.
     Variant(
