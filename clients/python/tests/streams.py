@@ -3,6 +3,9 @@ and sessions run in threads at once."""
 
 from __future__ import annotations
 
+import contextlib
+import queue
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -39,3 +42,75 @@ def in_threads(run: Callable[[int], None], n: int, timeout: float = 60.0) -> Non
     if errors:
         raise errors[0]
     assert not any(thread.is_alive() for thread in threads), "a thread still runs (a hang)"
+
+
+class SlowProxy:
+    """A TCP proxy on 127.0.0.1 that forwards what the server sends ``delay`` seconds late
+    (in order; what the client sends goes at once): a slow path from server to learner.
+    ``address`` is the proxy's; use it as a context manager."""
+
+    def __init__(self, target: str, delay: float) -> None:
+        host, port = target.rsplit(":", 1)
+        self._target = (host, int(port))
+        self._delay = delay
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"127.0.0.1:{self._listener.getsockname()[1]}"
+        self._sockets: list[socket.socket] = [self._listener]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                down, _ = self._listener.accept()
+            except OSError:
+                return
+            up = socket.create_connection(self._target)
+            for s in (down, up):
+                s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._sockets += [down, up]
+            late: queue.Queue[tuple[float, bytes]] = queue.Queue()
+            threading.Thread(target=self._pump, args=(down, up, None), daemon=True).start()
+            threading.Thread(target=self._pump, args=(up, None, late), daemon=True).start()
+            threading.Thread(target=self._late, args=(late, down), daemon=True).start()
+
+    def _pump(
+        self,
+        src: socket.socket,
+        dst: socket.socket | None,
+        late: queue.Queue[tuple[float, bytes]] | None,
+    ) -> None:
+        while True:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                data = b""
+            if late is not None:
+                late.put((time.monotonic() + self._delay, data))
+            elif data and dst is not None:
+                with contextlib.suppress(OSError):
+                    dst.sendall(data)
+            if not data:
+                if dst is not None:
+                    with contextlib.suppress(OSError):
+                        dst.shutdown(socket.SHUT_WR)
+                return
+
+    def _late(self, late: queue.Queue[tuple[float, bytes]], dst: socket.socket) -> None:
+        while True:
+            at, data = late.get()
+            time.sleep(max(0.0, at - time.monotonic()))
+            try:
+                if not data:
+                    dst.shutdown(socket.SHUT_WR)
+                    return
+                dst.sendall(data)
+            except OSError:
+                return
+
+    def __enter__(self) -> SlowProxy:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for s in self._sockets:
+            with contextlib.suppress(OSError):
+                s.close()

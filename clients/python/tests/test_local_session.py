@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
-from streams import in_threads, open_streams
+from streams import SlowProxy, in_threads, open_streams
 from test_engine_equivalence import (
     Scenario,
     assert_results_identical,
@@ -276,6 +276,25 @@ def test_many_local_learners_on_one_task(remote_client: tamrm.Client, task_id: s
             step(i, rng.integers(0, 3, 2), rng.normal(size=2), ends, episode_scores=scores)
 
     in_threads(learn, 4)
+    # Racing ends made copies plan changes the server decided otherwise; once the acks are
+    # in (a call of the client waits for them), every copy holds the server's pool: it
+    # shapes fresh episodes as a remote session on the task does.
+    latest = client.get_task(task_id).stats.pool_version
+    probes = [[0, 1], [2, 2], [1, 0]]
+    with client.session(task_id, 2) as remote:
+        want = [remote.step(a, [0.0, 0.0]) for a in probes]
+    sent[0]["steps"] += sum(len(w) for w in want)
+    assert want[1].knn_active.all()
+    for i, s in enumerate(learners):
+        deadline = time.monotonic() + STALENESS_WAIT
+        while step(i, [0, 0], [0.0, 0.0]).pool_version < latest:
+            assert time.monotonic() < deadline, "a copy never caught up"
+            time.sleep(0.003)
+        s.abandon([0, 1])
+        for a, w in zip(probes, want, strict=True):
+            got = step(i, a, [0.0, 0.0])
+            assert got.pool_version == w.pool_version == latest
+            assert got.knn_rewards.tobytes() == w.knn_rewards.tobytes(), i
     for s in learners:
         s.close()
     for seen in versions:
@@ -285,6 +304,43 @@ def test_many_local_learners_on_one_task(remote_client: tamrm.Client, task_id: s
     assert stats.steps_shaped == sum(s["steps"] for s in sent)
     assert stats.pool_version >= max(v[-1] for v in versions)
     assert client.get_pool(task_id).pool_version == stats.pool_version
+
+
+def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
+    remote_client: tamrm.Client, task_id: str
+) -> None:
+    """A learner whose updates come late (a slow path from the server) ends an episode
+    after another client's better trajectory reached the server but not its copy: the
+    copy plans a replacement the server refuses, at the version of the server's pool. The
+    ack differs from the plan, and the copy takes the server's pool before its next step
+    (an update of the same version would not replace it)."""
+    config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    for score in (0.0, 100.0):
+        remote_client.add_trajectory(task_id, [1, 1, 1, 1], score)
+    with SlowProxy(remote_client.target, delay=0.05) as proxy:
+        client = tamrm.Client(proxy.address)
+        learner = client.session(task_id, 1, local=True)
+        try:
+            for r in range(4):
+                for _ in range(3):
+                    learner.step([2], [0.0])
+                # The server's pool: minimum 100 (r + 1); the copy's: 100 r.
+                added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 100.0 * (r + 2))
+                planned = learner.step([2], [0.0], [True], episode_scores=[100.0 * r + 50])
+                assert planned.pool_version == added.pool_version, r
+                with remote_client.session(task_id, 1) as remote:
+                    want = remote.step([0], [0.0])
+                client.get_task(task_id)  # the end's ack is in
+                got = learner.step([0], [0.0])
+                assert got.pool_version == want.pool_version == added.pool_version, r
+                assert got.knn_rewards.tobytes() == want.knn_rewards.tobytes(), r
+                learner.abandon([0])
+        finally:
+            learner.close()
+            client.close()
+    pool = remote_client.get_pool(task_id)
+    assert [t.score for t in pool.trajectories] == [400.0, 500.0]
 
 
 # -- resume ------------------------------------------------------------------------------------

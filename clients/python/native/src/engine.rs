@@ -279,12 +279,10 @@ impl EngineStream {
             return Err(Status::cancelled("the session is closed"));
         };
         let rt = self.rt;
-        let ends = batch.terminated.iter().chain(&batch.truncated).any(|&e| e);
-        if let (Some(local), true) = (&self.local, ends) {
-            // A batch that may end an episode plans against the server's pool: the acks
-            // of the earlier ends first (their changes are applied to this session's
-            // pool already, as planned; see `FollowStore::commit`).
-            if let Some(pool) = rt.block_on(local.store.settle())? {
+        if let Some(local) = &self.local {
+            // The acks of the ends in flight: a refused one is this step's error, and a
+            // copy that went its own way takes the server's pool (see `FollowStore::commit`).
+            if let Some(pool) = local.store.poll()? {
                 session.task().refresh((*pool).clone());
             }
         }
@@ -309,7 +307,7 @@ impl EngineStream {
             // ends' acks first: a closed session has nothing in flight.
             let _ = self.rt.block_on(async {
                 tokio::time::timeout(CLOSE_REPORT, async {
-                    let _ = local.store.settle().await;
+                    local.store.wait_acks().await;
                     registry.flush_counters().await
                 })
                 .await

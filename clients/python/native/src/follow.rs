@@ -51,15 +51,39 @@ struct Outgoing {
     reply: Option<Reply>,
 }
 
-/// The ends a store committed without waiting for their acks.
+/// An end (a message of ends) committed without waiting for its ack, and what the
+/// learner planned of it.
+struct InFlight {
+    answer: Answer,
+    /// The planned outcome of each end (whether it changed the pool)...
+    changed: Vec<bool>,
+    /// ...and the version the plan reached: the ack must say the same, or the learner's
+    /// copy went its own way (another learner's change came first at the server).
+    version: u64,
+}
+
+impl InFlight {
+    fn changes(&self) -> usize {
+        self.changed.iter().filter(|&&c| c).count()
+    }
+}
+
+/// The ends committed without waiting for their acks, in the order they were sent.
 #[derive(Default)]
 struct Unsettled {
-    /// The acks not yet received.
-    answers: Vec<Answer>,
-    /// The first of them that failed (for the session's next step).
+    in_flight: VecDeque<InFlight>,
+    /// The first failure of one of them not yet reported (for the session's next step).
     failed: Option<Status>,
-    /// Acks were received since the session last took the server's pool.
-    received: bool,
+    /// An ack did not match its plan (or an end failed): the learner's copy holds a change
+    /// the server did not make, and takes the server's pool once nothing is in flight.
+    diverged: bool,
+}
+
+impl Unsettled {
+    /// The changes planned by the ends still in flight.
+    fn changes(&self) -> usize {
+        self.in_flight.iter().map(InFlight::changes).sum()
+    }
 }
 
 /// What the store and its driver share.
@@ -74,6 +98,8 @@ struct Shared {
     failure: Mutex<Option<Status>>,
     /// Why the driver ended, if the server refused the stream for good.
     ended: Mutex<Option<Status>>,
+    /// Woken whenever the driver answers a message (for [`FollowStore::wait_acks`]).
+    answered: tokio::sync::Notify,
 }
 
 impl Shared {
@@ -108,9 +134,10 @@ pub(crate) struct FollowStore {
     outgoing: Mutex<Option<mpsc::UnboundedSender<Outgoing>>>,
     /// Steps reported to the server so far (the local task's count at the last message).
     reported: Mutex<u64>,
-    /// The ends committed without waiting, which the next step that may end an episode
-    /// (and every call of the session's client) waits for.
-    unsettled: tokio::sync::Mutex<Unsettled>,
+    /// The ends committed without waiting: the session's steps check their acks, a
+    /// commit that could undo one of them waits for them, and so does every call of the
+    /// session's client.
+    unsettled: Mutex<Unsettled>,
     /// The opened task as the server answered it.
     opened: proto::Task,
     description: String,
@@ -296,6 +323,7 @@ impl FollowStore {
             changes,
             failure: Mutex::new(None),
             ended: Mutex::new(None),
+            answered: tokio::sync::Notify::new(),
         });
         let (outgoing, queued) = mpsc::unbounded_channel();
         let description = format!(
@@ -309,7 +337,7 @@ impl FollowStore {
             conn,
             outgoing: Mutex::new(Some(outgoing)),
             reported: Mutex::new(0),
-            unsettled: tokio::sync::Mutex::new(Unsettled::default()),
+            unsettled: Mutex::new(Unsettled::default()),
             opened,
             description,
         })
@@ -410,32 +438,74 @@ impl FollowStore {
         }
     }
 
-    /// Waits until every end committed without waiting is acknowledged (or failed): a
-    /// call of the session's client then sees them at the server ("read your writes").
-    pub(crate) async fn wait_acks(&self) {
-        let mut u = self.unsettled.lock().await;
-        for answer in std::mem::take(&mut u.answers) {
-            u.received = true;
-            if let Err(e) = self.answered(answer).await {
-                let status = self
-                    .take_failure()
-                    .unwrap_or_else(|| Status::unavailable(e.to_string()));
+    /// Takes the answers that came for the ends in flight (in order: the acks do): an
+    /// ack that differs from its plan marks the copy diverged, a failure is kept for the
+    /// session's next step (and diverges the copy too: its change was not made).
+    fn reap(&self, u: &mut Unsettled) {
+        use tokio::sync::oneshot::error::TryRecvError;
+        while let Some(front) = u.in_flight.front_mut() {
+            let failure = match front.answer.try_recv() {
+                Err(TryRecvError::Empty) => return,
+                Ok(Ok((ack, _))) => {
+                    u.diverged |= ack.changed != front.changed || ack.pool_version != front.version;
+                    None
+                }
+                Ok(Err(status)) => Some(status),
+                Err(TryRecvError::Closed) => {
+                    Some(self.shared.ended.lock().clone().unwrap_or_else(|| {
+                        Status::unavailable(format!(
+                            "{}: the follow stream has ended",
+                            self.description
+                        ))
+                    }))
+                }
+            };
+            u.in_flight.pop_front();
+            if let Some(status) = failure {
+                u.diverged = true;
                 u.failed.get_or_insert(status);
             }
         }
     }
 
-    /// [`FollowStore::wait_acks`], then the followed pool, which holds those ends (`None`
-    /// if no ack came since the last call): what the session plans its next episode end
-    /// against. Fails with the status of an end the server refused.
-    pub(crate) async fn settle(&self) -> Result<Option<Arc<Pool>>, Status> {
-        self.wait_acks().await;
-        let mut u = self.unsettled.lock().await;
+    /// Before a step: the status of an end the server refused since the last step, or the
+    /// server's pool when the copy diverged from it and nothing is in flight any more
+    /// (the session publishes it; its version is at least the copy's, since a plan never
+    /// counts more than one change the server has not answered); `None` when the copy
+    /// holds the server's pool as planned. Never waits.
+    pub(crate) fn poll(&self) -> Result<Option<Arc<Pool>>, Status> {
+        let mut u = self.unsettled.lock();
+        if u.in_flight.is_empty() && !u.diverged && u.failed.is_none() {
+            return Ok(None);
+        }
+        self.reap(&mut u);
         if let Some(status) = u.failed.take() {
-            u.received = false;
             return Err(status);
         }
-        Ok(std::mem::take(&mut u.received).then(|| self.shared.pool.lock().clone()))
+        if u.diverged && u.in_flight.is_empty() {
+            u.diverged = false;
+            return Ok(Some(self.shared.pool.lock().clone()));
+        }
+        Ok(None)
+    }
+
+    /// Waits until every end committed without waiting is acknowledged (or failed): a
+    /// call of the session's client then sees them at the server ("read your writes").
+    pub(crate) async fn wait_acks(&self) {
+        loop {
+            let answered = self.shared.answered.notified();
+            tokio::pin!(answered);
+            answered.as_mut().enable();
+            {
+                let mut u = self.unsettled.lock();
+                self.reap(&mut u);
+                if u.in_flight.is_empty() {
+                    return;
+                }
+            }
+            // (A driver that ended dropped its replies: the tick notices.)
+            let _ = tokio::time::timeout(Duration::from_millis(50), answered).await;
+        }
     }
 
     /// A failure as the store reports it; the status itself is kept for the session.
@@ -520,16 +590,17 @@ impl Store for FollowStore {
 
     /// Sends the ends and the steps shaped since the last message.
     ///
-    /// Where this learner's own plan changes the pool at most once, it answers that plan
-    /// without waiting: the learner shapes on against it while the ack travels, and its
-    /// next batch that may end an episode waits for the ack and plans against the
-    /// server's pool ([`FollowStore::settle`]), so every plan starts from a pool the
-    /// server had. The server's version after the end is then never below the plan's:
-    /// it decides against a pool at least as new as `base`, and on the same pool it
-    /// decides the same (so a learner alone shapes as a `Shape` stream, bit for bit). A
-    /// plan of two or more changes could be undone in part by one change of another
-    /// learner, so it waits for the pool the server made of it, with every change made
-    /// before, by anyone.
+    /// While the changes planned by the ends in flight (not yet acknowledged) and by
+    /// these come to at most one, it answers the plan without waiting: the learner shapes
+    /// on against it while the ack travels. The server's version after these ends is then
+    /// never below the plan's: others' changes only add versions, and the one change it
+    /// might decide otherwise is matched by the other's that made it do so; on the same
+    /// pool it decides the same, so a learner alone shapes as a `Shape` stream, bit for
+    /// bit, and never waits for an end that leaves the pool as it is. An ack that differs
+    /// from its plan marks the copy diverged; the session then takes the server's pool
+    /// once nothing is in flight ([`FollowStore::poll`]). Anything else (a second change
+    /// in flight, a diverged copy) waits for the pool the server made of these ends, with
+    /// every change made before, by anyone, and the registry publishes that.
     async fn commit(
         &self,
         _: &str,
@@ -544,18 +615,34 @@ impl Store for FollowStore {
             .collect::<Result<Vec<_>, _>>()
             .map_err(|s| self.failed(s))?;
         let msg = self.message(ends, counters);
-        if changed.iter().filter(|&&c| c).count() <= 1 {
-            let answer = self.submit(msg)?;
-            self.unsettled.lock().await.answers.push(answer);
-            let pool = Arc::new(planned);
-            return Ok(Committed {
-                version: pool.version(),
-                pool,
-                changed,
-                resent: 0,
-            });
+        let planned_changes = changed.iter().filter(|&&c| c).count();
+        {
+            let mut u = self.unsettled.lock();
+            self.reap(&mut u);
+            if !u.diverged && u.changes() + planned_changes <= 1 {
+                let answer = self.submit(msg)?;
+                let pool = Arc::new(planned);
+                u.in_flight.push_back(InFlight {
+                    answer,
+                    changed: changed.clone(),
+                    version: pool.version(),
+                });
+                return Ok(Committed {
+                    version: pool.version(),
+                    pool,
+                    changed,
+                    resent: 0,
+                });
+            }
         }
         let (ack, pool) = self.send(msg).await?;
+        // The acks come in order: every end sent before is answered too, and `pool` is the
+        // server's with all of them, which replaces whatever this copy planned.
+        {
+            let mut u = self.unsettled.lock();
+            self.reap(&mut u);
+            u.diverged = false;
+        }
         Ok(Committed {
             pool,
             // A re-sent end (the stream broke before its ack) is the learner's own
@@ -672,6 +759,7 @@ async fn serve(
                         };
                         if let Some(reply) = out.reply {
                             let _ = reply.send(Ok((ack, shared.pool.lock().clone())));
+                            shared.answered.notify_waiters();
                         }
                         continue;
                     }
@@ -729,7 +817,7 @@ async fn drive(
                 Err(status) => {
                     // Nobody answered within resume_timeout: fail what waits; a later
                     // commit tries again.
-                    fail_waiting(&mut pending, &mut queued, status);
+                    fail_waiting(&shared, &mut pending, &mut queued, status);
                     if queued.is_closed() && pending.is_empty() {
                         return;
                     }
@@ -755,6 +843,7 @@ async fn drive(
 
 /// Answers every waiting message with `status` (the messages are dropped).
 fn fail_waiting(
+    shared: &Shared,
     pending: &mut VecDeque<Outgoing>,
     queued: &mut mpsc::UnboundedReceiver<Outgoing>,
     status: Status,
@@ -767,6 +856,7 @@ fn fail_waiting(
             let _ = reply.send(Err(status.clone()));
         }
     }
+    shared.answered.notify_waiters();
 }
 
 /// Ends the driver: every message now and later fails with `status`.
@@ -778,7 +868,7 @@ fn fail_all(
 ) {
     tracing::debug!(error = %status, "follow stream refused");
     *shared.ended.lock() = Some(status.clone());
-    fail_waiting(pending, queued, status.clone());
+    fail_waiting(shared, pending, queued, status.clone());
     queued.close();
-    fail_waiting(pending, queued, status);
+    fail_waiting(shared, pending, queued, status);
 }
