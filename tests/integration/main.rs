@@ -13,6 +13,7 @@ mod follow;
 mod group_commit;
 mod metrics;
 mod redis;
+mod redis_pool_rule;
 mod server;
 mod tls;
 mod undecodable;

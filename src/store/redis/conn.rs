@@ -1,0 +1,129 @@
+//! The connection to Redis: one server or a cluster behind one type, opened from the
+//! store's URL, and Redis errors turned into the store's (unavailable or not).
+
+use std::time::Duration;
+
+use redis::aio::{ConnectionLike, ConnectionManager};
+use redis::cluster_async::ClusterConnection;
+use redis::{Cmd, Pipeline, RedisFuture, Value};
+
+use super::url::RedisTarget;
+use crate::store::StoreError;
+
+/// A connection to one server or to a cluster; both multiplex requests and reconnect by
+/// themselves.
+#[derive(Clone)]
+pub(super) enum Conn {
+    Node(ConnectionManager),
+    Cluster(ClusterConnection),
+}
+
+impl ConnectionLike for Conn {
+    fn req_packed_command<'a>(&'a mut self, cmd: &'a Cmd) -> RedisFuture<'a, Value> {
+        match self {
+            Conn::Node(c) => c.req_packed_command(cmd),
+            Conn::Cluster(c) => c.req_packed_command(cmd),
+        }
+    }
+
+    fn req_packed_commands<'a>(
+        &'a mut self,
+        pipeline: &'a Pipeline,
+        offset: usize,
+        count: usize,
+    ) -> RedisFuture<'a, Vec<Value>> {
+        match self {
+            Conn::Node(c) => c.req_packed_commands(pipeline, offset, count),
+            Conn::Cluster(c) => c.req_packed_commands(pipeline, offset, count),
+        }
+    }
+
+    fn get_db(&self) -> i64 {
+        match self {
+            Conn::Node(c) => c.get_db(),
+            Conn::Cluster(c) => c.get_db(),
+        }
+    }
+}
+
+/// Connects to the Redis of `url` (failing if it does not answer a `PING`): the
+/// connection, and a client per node to subscribe to notifications on (one for a single
+/// server, every seed node of a cluster). `what` names the store in errors.
+pub(super) async fn connect(
+    what: &str,
+    url: &str,
+) -> Result<(Conn, Vec<redis::Client>), StoreError> {
+    let bad_url = |message: String| StoreError::Io {
+        path: what.into(),
+        message,
+    };
+    let open_client =
+        |url: &str| redis::Client::open(url).map_err(|e| bad_url(format!("not a Redis URL: {e}")));
+    let (connect, timeout) = (Duration::from_secs(5), Duration::from_secs(10));
+    let (mut conn, subscribers) = match RedisTarget::parse(url).map_err(bad_url)? {
+        RedisTarget::Node(url) => {
+            let client = open_client(&url)?;
+            let config = redis::aio::ConnectionManagerConfig::new()
+                .set_connection_timeout(Some(connect))
+                .set_response_timeout(Some(timeout))
+                .set_max_delay(Duration::from_secs(2));
+            let conn = client
+                .get_connection_manager_with_config(config)
+                .await
+                .map_err(|e| unavailable(what, "connecting", e))?;
+            (Conn::Node(conn), vec![client])
+        }
+        RedisTarget::Cluster(nodes) => {
+            let conn = redis::cluster::ClusterClientBuilder::new(nodes.clone())
+                .connection_timeout(connect)
+                .response_timeout(timeout)
+                .build()
+                .map_err(|e| bad_url(format!("not a Redis Cluster URL: {e}")))?
+                .get_async_connection()
+                .await
+                .map_err(|e| unavailable(what, "connecting", e))?;
+            let subscribers = nodes
+                .iter()
+                .map(|n| open_client(n))
+                .collect::<Result<Vec<_>, _>>()?;
+            (Conn::Cluster(conn), subscribers)
+        }
+    };
+    let _: Value = redis::cmd("PING")
+        .query_async(&mut conn)
+        .await
+        .map_err(|e| unavailable(what, "connecting", e))?;
+    Ok((conn, subscribers))
+}
+
+/// The store's error for a failed Redis call: [`StoreError::Unavailable`] when Redis (or
+/// the cluster) cannot be reached or cannot serve now, [`StoreError::Io`] otherwise.
+pub(super) fn unavailable(what: &str, doing: &str, e: redis::RedisError) -> StoreError {
+    let message = e.to_string();
+    let down = matches!(
+        e.kind(),
+        redis::ErrorKind::ClusterConnectionNotFound
+            | redis::ErrorKind::Server(
+                redis::ServerErrorKind::ClusterDown
+                    | redis::ServerErrorKind::TryAgain
+                    | redis::ServerErrorKind::MasterDown
+                    | redis::ServerErrorKind::BusyLoading
+            )
+    );
+    if down
+        || e.is_io_error()
+        || e.is_connection_refusal()
+        || e.is_timeout()
+        || e.is_connection_dropped()
+    {
+        StoreError::Unavailable {
+            what: format!("{what} ({doing})"),
+            message,
+        }
+    } else {
+        StoreError::Io {
+            path: what.into(),
+            message: format!("{doing}: {message}"),
+        }
+    }
+}
