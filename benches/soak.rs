@@ -1,4 +1,4 @@
-//! Soak under abuse (issue 13; docs/soak.md): the real `tamrm` binary (a child process,
+//! Soak under abuse (docs/soak.md): the real `tamrm` binary (a child process,
 //! `--data-dir`, loopback only) under 256 concurrent streams over several tasks for a
 //! bounded time, with well-behaved learners and abusers mixed in:
 //!

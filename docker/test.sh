@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Container test of the tamrm image (issue 11 item 1), with podman:
+# Container test of the tamrm image (docs/deployment.md), with podman:
 #   build tamrm:latest (docker/build.sh), run it with a named volume on a free port, wait
 #   for HEALTHCHECK to pass, create a task and shape episodes through the Python client,
 #   find them counted on the metrics endpoint (GET /metrics), stop and start the container and find the pool and task intact, check that the server

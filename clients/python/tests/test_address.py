@@ -1,4 +1,4 @@
-"""Client addresses: whitespace, malformed addresses, ``TAMRM_ADDRESS`` (issue 15, items 3, 9)."""
+"""Client addresses: whitespace, malformed addresses, ``TAMRM_ADDRESS``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A bad number does not end a training run (issue 15, item 6, client part)."""
+"""A bad number does not end a training run (the client's part)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Replicas sharing one Redis store (SPEC §9, §10; issue 12): ``tamrm.Client`` given
+"""Replicas sharing one Redis store (SPEC §9, §10): ``tamrm.Client`` given
 several addresses goes on through another replica when the one it uses is killed with -9,
 with the rewards an uninterrupted stream would have had.
 

@@ -1,4 +1,4 @@
-"""gymnasium's own checker on the wrappers (issue 15, item 1)."""
+"""gymnasium's own checker on the wrappers."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Ctrl-C while the server hangs (issue 15, item 8): no 10 s wait, no chained traceback."""
+"""Ctrl-C while the server hangs: no 10 s wait, no chained traceback."""
 
 from __future__ import annotations
 

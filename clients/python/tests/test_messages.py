@@ -1,4 +1,4 @@
-"""Messages a newcomer meets: the missing sb3 extra, a wrong --server (issue 15, item 7)."""
+"""Messages a newcomer meets: the missing sb3 extra, a wrong --server."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Clients, sessions and wrappers across processes (issue 15, item 2)."""
+"""Clients, sessions and wrappers across processes."""
 
 from __future__ import annotations
 

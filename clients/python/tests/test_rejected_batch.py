@@ -1,4 +1,4 @@
-"""A batch the server rejects ends nothing (issue 15, item 6; SPEC §8, §9)."""
+"""A batch the server rejects ends nothing (SPEC §8, §9)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Transparent resume (SPEC §9, issue 12 item 2): a session whose server is killed and
+"""Transparent resume (SPEC §9): a session whose server is killed and
 restarted with the same data dir goes on as if nothing had happened, with the rewards an
 uninterrupted stream would have had."""
 

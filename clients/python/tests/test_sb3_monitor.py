@@ -1,4 +1,4 @@
-"""SB3 episode statistics stay raw wherever the monitor sits (issue 15, item 5)."""
+"""SB3 episode statistics stay raw wherever the monitor sits."""
 
 from __future__ import annotations
 

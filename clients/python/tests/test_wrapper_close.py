@@ -1,4 +1,4 @@
-"""Closing a wrapper closes the session it owns (issue 15, item 4)."""
+"""Closing a wrapper closes the session it owns."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-//! Arbitrary, mostly invalid batches (issue 13, item 4): either the whole batch is
+//! Arbitrary, mostly invalid batches: either the whole batch is
 //! applied or none of it; a rejection names a field of the batch; other streams on the
 //! task are unaffected.
 
