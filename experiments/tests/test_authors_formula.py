@@ -1,4 +1,4 @@
-"""Our r(t) against the authors' own formula (issue 14, item 5).
+"""Our r(t) against the authors' own formula.
 
 The authors compute the kNN reward in ``predict_modified`` (``Carpole_test/carpole.py``
 and ``MountainCar_test/knn_reward_model.py`` of their published code; ``predict`` in the

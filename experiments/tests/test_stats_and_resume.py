@@ -86,7 +86,7 @@ def test_grid_is_seed_major_and_selects_by_fidelity_and_variant():
     assert len({s.key for s in specs}) == len(specs)
     authors = make_specs("paper", seeds=1, fidelities=["authors"])
     assert authors and {s.fidelity for s in authors} == {"authors"}
-    # Every experiment has both fidelities (issue 14).
+    # Every experiment has both fidelities (the authors' and the clean one).
     assert {s.experiment for s in authors} == set(EXPERIMENTS)
     clean = make_specs("paper", seeds=1, fidelities=["clean"])
     assert {s.experiment for s in clean} == set(EXPERIMENTS)

@@ -15,7 +15,7 @@ from tamrm_experiments.experiments.base import (
 __all__ = ["AUTHORS_BUDGETS", "MAZE", "MAZE_SETUP", "Maze", "authors_variants"]
 
 #: What the maze and the modified maze share: environment, learner, shaping, budget.
-#: The learner is the pilot's (issue 14): the first report's DQN on the raw (x, y) cell
+#: The learner is the pilot's (maze-pilot.md): the first report's DQN on the raw (x, y) cell
 #: (net 10x10, fixed epsilon 0.1) did not learn the maze in 200 episodes (plain ended at
 #: ~900 steps per episode, a random walk's ~800). On a one-hot cell (64 inputs: a DQN that
 #: can represent a table) with epsilon decaying 1 -> 0.05 over the first 10 000 steps and
@@ -45,7 +45,7 @@ MAZE_SETUP: dict[str, Any] = {
 }
 
 
-#: Their maze DQN does not learn the maze (issue 14's pilot): with the observation updated,
+#: Their maze DQN does not learn the maze (see maze-pilot.md): with the observation updated,
 #: plain ends 200 episodes at ~500-800 steps per episode (3 seeds; a random walk: 817).
 #: ``python -m tamrm_experiments.pilot`` tried changes on 5 seeds each
 #: (docs/reproduction/maze-pilot.md): three are needed together to learn on every seed
