@@ -49,6 +49,22 @@ def test_sb3_dqn_example_quick(server_binary: str) -> None:
     assert "(unshaped, pool untouched)" in out, out
 
 
+def test_pettingzoo_sb3_example_quick(server_binary: str) -> None:
+    pytest.importorskip("supersuit")
+    pytest.importorskip("mpe2")
+    script = str(CLIENT / "examples" / "pettingzoo_sb3.py")
+    # One pool for the three agents, SuperSuit's copies in this process.
+    out = _run([script, "--quick"], server_binary)
+    assert "3 agents sharing one policy, 2 env copies, shared pool" in out, out
+    (task,) = [line for line in out.splitlines() if line.startswith("task ")]
+    assert " 1152 steps shaped" in task, out  # every agent-step of 3 PPO updates
+    # A pool per agent, SuperSuit's copies in two worker processes (the wrapper pickled).
+    out = _run([script, "--quick", "--layout", "per-agent", "--num-cpus", "2"], server_binary)
+    tasks = [line for line in out.splitlines() if line.startswith("task ")]
+    assert [t.split()[1].rsplit("/", 1)[1] for t in tasks] == ["agent_0:", "agent_1:", "agent_2:"]
+    assert all(" 384 steps shaped" in t for t in tasks), out
+
+
 def test_overhead_benchmark_smoke(server_binary: str) -> None:
     out = _run(
         [

@@ -12,6 +12,8 @@ Main entry points:
 - :meth:`Client.session` -> :class:`Session`: one stream, one round trip per vector step.
 - :mod:`tamrm.gym`: ``ShapedReward`` / ``VectorShapedReward`` gymnasium wrappers.
 - :mod:`tamrm.sb3`: ``ShapedVecEnv`` for Stable-Baselines3 (extra ``tamrm[sb3]``).
+- :mod:`tamrm.pettingzoo`: ``ShapedParallel`` / ``ShapedAEC`` for PettingZoo
+  multi-agent envs (extra ``tamrm[pettingzoo]``).
 - :func:`local_server`: run a ``tamrm`` binary on a free port for tests and examples.
 """
 
@@ -53,6 +55,7 @@ from tamrm._types import (
 if TYPE_CHECKING:
     import tamrm.aio as aio
     import tamrm.gym as gym
+    import tamrm.pettingzoo as pettingzoo
     import tamrm.sb3 as sb3
 
 __version__ = "0.1.0"
@@ -92,14 +95,15 @@ __all__ = [
     "find_binary",
     "gym",
     "local_server",
+    "pettingzoo",
     "sb3",
 ]
 
-_LAZY = {"aio", "gym", "sb3"}
+_LAZY = {"aio", "gym", "pettingzoo", "sb3"}
 
 
 def __getattr__(name: str) -> Any:
-    """Import the optional submodules (``aio``, ``gym``, ``sb3``) on first use."""
+    """Import the optional submodules (``aio``, ``gym``, ``pettingzoo``, ``sb3``) on first use."""
     if name in _LAZY:
         module = importlib.import_module(f"tamrm.{name}")
         globals()[name] = module

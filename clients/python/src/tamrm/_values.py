@@ -8,7 +8,15 @@ from typing import Any, TypeAlias
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ObsBatch", "ValueFn", "concat_obs", "select_obs", "set_obs_row", "value_kwargs"]
+__all__ = [
+    "ObsBatch",
+    "ValueFn",
+    "concat_obs",
+    "select_obs",
+    "set_obs_row",
+    "split_values",
+    "value_kwargs",
+]
 
 #: A batch of observations: an array with a leading batch axis, or a dict of batches.
 ObsBatch: TypeAlias = "npt.NDArray[Any] | Mapping[str, ObsBatch]"
@@ -63,7 +71,19 @@ def value_kwargs(
     """
     if value_fn is None or size == 0:
         return {}
-    out = np.asarray(value_fn(concat_obs(obs, next_obs)), dtype=np.float64)
+    return split_values(value_fn(concat_obs(obs, next_obs)), size)
+
+
+def split_values(values: npt.ArrayLike, size: int) -> dict[str, npt.NDArray[np.float64]]:
+    """Split the values of ``size`` observations followed by their ``size`` successors.
+
+    ``values`` holds V(s) ``(2 * size,)`` (or ``(2 * size, 1)``) or Q(s, ·)
+    ``(2 * size, num_actions)``; the result is the step keywords of :func:`value_kwargs`.
+
+    Raises:
+        ValueError: ``values`` has an unexpected shape.
+    """
+    out = np.asarray(values, dtype=np.float64)
     if out.ndim == 2 and out.shape == (2 * size, 1):
         out = out[:, 0]
     if out.shape == (2 * size,):
