@@ -4,9 +4,11 @@
 #   bash clients/python/scripts/ci.sh
 #
 # - creates (or reuses) the virtualenv $TAMRM_VENV (default: <repo>/.venv),
-# - installs the client with its [dev,sb3,pettingzoo] extras (editable; maturin compiles the
-#   native extension, clients/python/native, from source with the Rust toolchain), and the
-#   PettingZoo env families the tests and examples run (MPE2, classic's pygame),
+# - installs the client with its [dev,sb3,pettingzoo,rllib] extras (editable; maturin
+#   compiles the native extension, clients/python/native, from source with the Rust
+#   toolchain; ray[rllib] pins gymnasium for the whole suite, docs/decisions/
+#   rllib-extra-shares-the-ci-venv.md), and the PettingZoo env families the tests and
+#   examples run (MPE2, classic's pygame),
 # - runs ruff check, ruff format --check, mypy (src/tamrm, strict, generated stubs excluded),
 # - runs pytest on clients/python/tests against the real server binary
 #   $TAMRM_BIN (default: <repo>/target/release/tamrm).
@@ -37,9 +39,9 @@ if [[ ! -x "$VENV/bin/python" ]]; then
 fi
 "$VENV/bin/python" --version
 
-step "pip install -e clients/python[dev,sb3,pettingzoo]"
+step "pip install -e clients/python[dev,sb3,pettingzoo,rllib]"
 "$VENV/bin/python" -m pip install -q --upgrade pip
-"$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,pettingzoo]"
+"$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,pettingzoo,rllib]"
 
 step "PettingZoo envs for tests/test_pettingzoo.py and examples/pettingzoo_sb3.py (wheels only)"
 "$VENV/bin/python" -m pip install -q --only-binary=:all: "mpe2>=1.1,<2" "pygame-ce>=2.3"
