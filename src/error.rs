@@ -1,7 +1,11 @@
 //! The service's error type. Every failure a client can cause or observe is one of these;
 //! `service::status` is the one place that maps them to gRPC status codes.
+//!
+//! Nearly every module uses this one, so it uses leaf modules only (modules that use
+//! nothing of the crate; `tests/layers.rs` checks it): no import circle runs through it.
 
-use crate::store::StoreError;
+use crate::store::error::StoreError;
+use crate::task_key::split_key;
 
 /// An error answered to a client.
 #[derive(Debug, thiserror::Error)]
@@ -62,7 +66,7 @@ impl From<StoreError> for Error {
                 Error::StoreUnavailable(format!("change not applied: {e}"))
             }
             // Another server deleted the task.
-            StoreError::Gone { task } => Error::not_found(crate::registry::split_key(&task).1),
+            StoreError::Gone { task } => Error::not_found(split_key(&task).1),
             e => Error::Storage(e),
         }
     }

@@ -12,7 +12,10 @@
 //! - [`auth`]: credentials, roles, tenants and quotas (SPEC §11), checked by a tower
 //!   layer before any handler runs;
 //! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings;
-//! - [`telemetry`]: Prometheus metrics (`--metrics-listen`).
+//! - [`telemetry`]: Prometheus metrics (`--metrics-listen`);
+//! - leaf modules, which use nothing of the crate and which any layer may use:
+//!   [`task_key`] (the key of a tenant's task), [`net`] (TLS files, the text of a failed
+//!   call), [`limits`] (the server limits).
 
 #![warn(missing_docs)]
 
@@ -38,10 +41,12 @@ pub mod proto {
 }
 pub mod error;
 pub mod limits;
+pub mod net;
 pub mod registry;
 pub mod server;
 pub mod service;
 pub mod session;
 pub mod settings;
 pub mod store;
+pub mod task_key;
 pub mod telemetry;

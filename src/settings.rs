@@ -8,7 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
-use crate::server::tls::{HealthcheckTls, TlsFiles};
+use crate::net::tls::{HealthcheckTls, TlsFiles};
 
 /// Default listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";

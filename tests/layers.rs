@@ -2,9 +2,14 @@
 //! - the layers point one way: core ← store ← registry ← session ← service ← server;
 //!   nothing imports a layer above it, the core does no I/O and no async, and nothing but
 //!   the service and the server knows of gRPC;
+//! - no import circle between the crate's modules; the error type, which nearly every
+//!   module uses, uses leaf modules only (modules that use nothing of the crate); nothing
+//!   uses the server, only the server uses the settings, and the Python extension uses
+//!   the library's public seams, not the server's internals;
 //! - one source per shared fact: the `TaskConfig` fields of the proto are the core's, and
 //!   every server limit is documented with its flag and environment variable.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -153,6 +158,361 @@ fn auth_decides_before_the_service_and_knows_no_episode() {
             "crate::store",
             "std::net",
         ],
+    );
+}
+
+fn src() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
+}
+
+/// A file's code without its comments (what follows `//` on a line; doc comments
+/// included), lines kept in place.
+fn code_of(text: &str) -> String {
+    text.lines()
+        .map(|l| l.split("//").next().unwrap_or(""))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The paths `crate::a::b::…` in `code`, as their segments (a `{` group ends a path).
+fn crate_paths(code: &str) -> Vec<Vec<&str>> {
+    let ident = |c: char| c.is_alphanumeric() || c == '_';
+    code.match_indices("crate::")
+        .filter(|(i, _)| !code[..*i].ends_with(|c: char| ident(c) || c == '$'))
+        .map(|(i, m)| {
+            let rest = &code[i + m.len()..];
+            let end = rest
+                .find(|c: char| !(ident(c) || c == ':'))
+                .unwrap_or(rest.len());
+            rest[..end].split("::").filter(|s| !s.is_empty()).collect()
+        })
+        .collect()
+}
+
+/// The top-level modules of the crate: every file and directory under `src/` but the
+/// crate roots.
+fn top_modules() -> BTreeSet<String> {
+    fs::read_dir(src())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter_map(|p| {
+            let name = p.file_stem()?.to_str()?.to_string();
+            (p.is_dir() || p.extension().is_some_and(|e| e == "rs")).then_some(name)
+        })
+        .filter(|n| n != "lib" && n != "main")
+        .collect()
+}
+
+/// The files of module `segments` (e.g. `["store", "error"]`), each with its depth below
+/// the module (0 for the module's own file, 1 for a submodule's, ...); empty if there is
+/// no such module.
+fn module_files(segments: &[&str]) -> Vec<(PathBuf, usize)> {
+    let base = segments.iter().fold(src(), |p, s| p.join(s));
+    let mut files = Vec::new();
+    let file = base.with_extension("rs");
+    if file.is_file() {
+        files.push((file, 0));
+    }
+    if base.is_dir() {
+        let mut under = Vec::new();
+        rust_files(&base, &mut under);
+        for f in under {
+            let rel = f.strip_prefix(&base).unwrap();
+            let mut depth = rel.components().count();
+            if f.file_name().is_some_and(|n| n == "mod.rs") {
+                depth -= 1;
+            }
+            files.push((f, depth));
+        }
+    }
+    files
+}
+
+/// The longest prefix of `path` that names a module (the module a `use` of it imports
+/// from).
+fn module_of<'a>(path: &[&'a str]) -> Vec<&'a str> {
+    (1..=path.len())
+        .rev()
+        .map(|n| path[..n].to_vec())
+        .find(|m| !module_files(m).is_empty())
+        .unwrap_or_default()
+}
+
+/// Why module `segments` is not a leaf (a module that uses nothing of the crate outside
+/// itself), `None` if it is one.
+fn not_a_leaf(segments: &[&str]) -> Option<String> {
+    let files = module_files(segments);
+    assert!(!files.is_empty(), "no module {}", segments.join("::"));
+    for (file, depth) in files {
+        let code = code_of(&fs::read_to_string(&file).unwrap());
+        for path in crate_paths(&code) {
+            if !path.starts_with(segments) {
+                return Some(format!(
+                    "{} uses crate::{}",
+                    file.display(),
+                    path.join("::")
+                ));
+            }
+        }
+        // `super::` may climb to the module itself, not out of it.
+        for (i, _) in code.match_indices("super::") {
+            let supers = code.as_bytes()[i..]
+                .chunks(7)
+                .take_while(|c| *c == b"super::")
+                .count();
+            let preceded = code[..i].ends_with("super::");
+            if !preceded && supers > depth {
+                return Some(format!(
+                    "{} climbs out of it ({} × super::)",
+                    file.display(),
+                    supers
+                ));
+            }
+        }
+    }
+    None
+}
+
+/// The modules that use nothing of the crate; every layer may use them.
+const LEAVES: [&str; 5] = ["core", "limits", "net", "task_key", "store/error"];
+
+#[test]
+fn the_leaf_modules_use_nothing_of_the_crate() {
+    for leaf in LEAVES {
+        let segments: Vec<&str> = leaf.split('/').collect();
+        if let Some(why) = not_a_leaf(&segments) {
+            panic!("{leaf} is to be a leaf module, but {why}");
+        }
+    }
+    // The check finds a module that is not one.
+    assert!(not_a_leaf(&["registry"]).is_some());
+    assert!(not_a_leaf(&["store"]).is_some());
+}
+
+#[test]
+fn the_error_type_uses_leaf_modules_only() {
+    let code = code_of(&fs::read_to_string(src().join("error.rs")).unwrap());
+    let used = crate_paths(&code);
+    assert!(
+        !used.is_empty(),
+        "error.rs uses no module: is the check blind?"
+    );
+    for path in used {
+        let module = module_of(&path);
+        assert!(
+            !module.is_empty(),
+            "error.rs: crate::{} is no module's",
+            path.join("::")
+        );
+        if let Some(why) = not_a_leaf(&module) {
+            panic!(
+                "error.rs uses crate::{}, and crate::{} is not a leaf module: {why}",
+                path.join("::"),
+                module.join("::")
+            );
+        }
+    }
+}
+
+/// Which top-level modules each top-level module uses (tests included).
+fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let modules = top_modules();
+    modules
+        .iter()
+        .map(|m| {
+            let mut uses = BTreeSet::new();
+            for (file, _) in module_files(&[m.as_str()]) {
+                let code = code_of(&fs::read_to_string(&file).unwrap());
+                for path in crate_paths(&code) {
+                    if let Some(&top) = path.first() {
+                        if top != m && modules.contains(top) {
+                            uses.insert(top.to_string());
+                        }
+                    }
+                }
+            }
+            (m.clone(), uses)
+        })
+        .collect()
+}
+
+/// A circle of `graph`, as the modules along it, if there is one.
+fn circle(graph: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
+    fn visit(
+        graph: &BTreeMap<String, BTreeSet<String>>,
+        node: &str,
+        path: &mut Vec<String>,
+        done: &mut BTreeSet<String>,
+    ) -> Option<Vec<String>> {
+        if let Some(at) = path.iter().position(|n| n == node) {
+            let mut circle = path[at..].to_vec();
+            circle.push(node.to_string());
+            return Some(circle);
+        }
+        if done.contains(node) {
+            return None;
+        }
+        path.push(node.to_string());
+        for next in graph.get(node).into_iter().flatten() {
+            if let Some(c) = visit(graph, next, path, done) {
+                return Some(c);
+            }
+        }
+        path.pop();
+        done.insert(node.to_string());
+        None
+    }
+    let mut done = BTreeSet::new();
+    graph
+        .keys()
+        .find_map(|n| visit(graph, n, &mut Vec::new(), &mut done))
+}
+
+#[test]
+fn no_modules_import_each_other_in_a_circle() {
+    let graph = module_graph();
+    assert!(
+        graph["registry"].contains("store") && graph["server"].contains("settings"),
+        "the graph misses known edges: {graph:?}"
+    );
+    if let Some(c) = circle(&graph) {
+        panic!("an import circle: {}", c.join(" → "));
+    }
+    // The check finds one.
+    let mut with_circle = graph.clone();
+    with_circle
+        .get_mut("store")
+        .unwrap()
+        .insert("registry".to_string());
+    assert!(circle(&with_circle).is_some());
+}
+
+#[test]
+fn nothing_uses_the_server_and_only_the_server_uses_the_settings() {
+    for (module, uses) in module_graph() {
+        assert!(
+            !uses.contains("server"),
+            "src/{module} uses crate::server: what it needs belongs below the server (e.g. net/)"
+        );
+        assert!(
+            module == "server" || !uses.contains("settings"),
+            "src/{module} uses crate::settings: the server hands each part what it needs"
+        );
+    }
+}
+
+/// What the Python extension (`clients/python/native`) may use of the service: the
+/// in-process `ShapingService` and these conversions. The rest of the service, the
+/// server and the settings are the server's internals.
+const NATIVE_SERVICE_SEAMS: [&str; 3] = [
+    "ShapingService",
+    "convert::task_proto",
+    "convert::config_input",
+];
+
+/// The paths a `use`-like `head::{a, b::{c, d}}` or `head::a::b` names after `head::`.
+fn paths_after(code: &str, head: &str) -> Vec<String> {
+    fn expand(prefix: &str, tree: &str, out: &mut Vec<String>) {
+        let tree = tree.trim();
+        if let Some(inner) = tree.strip_prefix('{').and_then(|t| t.strip_suffix('}')) {
+            let (mut depth, mut start) = (0, 0);
+            for (i, c) in inner.char_indices() {
+                match c {
+                    '{' => depth += 1,
+                    '}' => depth -= 1,
+                    ',' if depth == 0 => {
+                        expand(prefix, &inner[start..i], out);
+                        start = i + 1;
+                    }
+                    _ => {}
+                }
+            }
+            expand(prefix, &inner[start..], out);
+        } else if let Some((first, rest)) = tree.split_once("::") {
+            expand(&format!("{prefix}{first}::"), rest, out);
+        } else if !tree.is_empty() {
+            out.push(format!("{prefix}{tree}"));
+        }
+    }
+    let mut out = Vec::new();
+    for (i, m) in code.match_indices(head) {
+        let rest = &code[i + m.len()..];
+        let Some(rest) = rest.strip_prefix("::") else {
+            out.push(String::new()); // the module itself
+            continue;
+        };
+        let end = if rest.starts_with('{') {
+            let mut depth = 0;
+            rest.char_indices()
+                .find(|&(_, c)| {
+                    depth += match c {
+                        '{' => 1,
+                        '}' => -1,
+                        _ => 0,
+                    };
+                    depth == 0
+                })
+                .map_or(rest.len(), |(i, _)| i + 1)
+        } else {
+            rest.find(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':'))
+                .unwrap_or(rest.len())
+        };
+        expand("", &rest[..end], &mut out);
+    }
+    out
+}
+
+#[test]
+fn a_use_tree_is_read_path_by_path() {
+    assert_eq!(
+        paths_after(
+            "use tamrm::service::{convert::{a, b}, ShapingService};\nx(tamrm::service::c::d(1));",
+            "tamrm::service"
+        ),
+        ["convert::a", "convert::b", "ShapingService", "c::d"]
+    );
+    assert_eq!(paths_after("use tamrm::service;", "tamrm::service"), [""]);
+}
+
+#[test]
+fn the_python_extension_uses_public_seams_not_the_servers_internals() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/native/src");
+    let mut files = Vec::new();
+    rust_files(&dir, &mut files);
+    assert!(!files.is_empty(), "no source in {}", dir.display());
+    let mut seen = BTreeSet::new();
+    for file in files {
+        let code = code_of(&fs::read_to_string(&file).unwrap());
+        for internal in ["tamrm::server", "tamrm::settings"] {
+            assert!(
+                !code.contains(internal),
+                "{}: the extension must not use {internal} (what it needs belongs in a leaf module such as tamrm::net)",
+                file.display()
+            );
+        }
+        let mut used = paths_after(&code, "tamrm::service");
+        // A module imported by name is used as `convert::item`.
+        if used.iter().any(|p| p == "convert") {
+            used.retain(|p| p != "convert");
+            used.extend(
+                paths_after(&code, "convert")
+                    .into_iter()
+                    .filter(|p| !p.is_empty())
+                    .map(|p| format!("convert::{p}")),
+            );
+        }
+        for path in used {
+            assert!(
+                NATIVE_SERVICE_SEAMS.contains(&path.as_str()),
+                "{}: the extension uses tamrm::service::{path}; it may use {NATIVE_SERVICE_SEAMS:?} of the service (add a public seam, not an internal)",
+                file.display()
+            );
+            seen.insert(path);
+        }
+    }
+    assert!(
+        seen.contains("ShapingService"),
+        "the check found no use of the service: is it blind?"
     );
 }
 

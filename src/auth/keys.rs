@@ -133,7 +133,7 @@ impl KeyFile {
 }
 
 /// Tenant names: 1 to [`MAX_TENANT_LEN`] characters of `[A-Za-z0-9._-]` (no `@`: see
-/// `registry::task_key`).
+/// [`crate::task_key`]).
 pub fn check_tenant(name: &str) -> Result<(), String> {
     if name.is_empty() || name.len() > MAX_TENANT_LEN {
         return Err(format!(

@@ -29,7 +29,7 @@ pub use keys::{check_tenant, Key, KeyFile, KeyFileError, Quotas, MAX_TENANT_LEN}
 pub use layer::AuthLayer;
 
 use crate::error::Error;
-use crate::registry::DEFAULT_TENANT;
+use crate::task_key::DEFAULT_TENANT;
 
 /// What a key may do. Each role includes the ones before it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Deserialize)]

@@ -26,30 +26,9 @@ use crate::error::Error;
 use crate::limits::Limits;
 use crate::store::{Counters, Store, StoreError};
 
-/// The tenant of callers without credentials (a server without `--api-keys`, the
-/// embedded engine), and the owner of data written before tenants existed.
-pub const DEFAULT_TENANT: &str = "default";
-
-/// Separates tenant and task id in a [`task_key`]; a task id cannot contain it.
-const TENANT_SEPARATOR: char = '@';
-
-/// The key of tenant `tenant`'s task `id` in the registry and the store: the id itself
-/// for [`DEFAULT_TENANT`] (so data written before tenants existed is the default
-/// tenant's), `tenant@id` for any other. Task ids never contain `@`
-/// (`session::validate_task_id`), tenant names neither (`auth`), so the key is unambiguous.
-pub fn task_key(tenant: &str, id: &str) -> String {
-    if tenant == DEFAULT_TENANT {
-        id.to_string()
-    } else {
-        format!("{tenant}{TENANT_SEPARATOR}{id}")
-    }
-}
-
-/// The (tenant, id) of a [`task_key`].
-pub fn split_key(key: &str) -> (&str, &str) {
-    key.split_once(TENANT_SEPARATOR)
-        .unwrap_or((DEFAULT_TENANT, key))
-}
+// The task-key format is the leaf module `task_key`'s (the error type uses it too); the
+// registry's tasks are keyed by it.
+pub use crate::task_key::{split_key, task_key, DEFAULT_TENANT};
 
 /// Every task of the server.
 pub struct Registry {

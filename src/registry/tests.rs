@@ -365,17 +365,4 @@ async fn a_tenant_task_quota_counts_only_its_own_tasks() {
     r.create("q", "c", &discrete(2, 2), Some(2)).await.unwrap();
 }
 
-#[test]
-fn task_keys_round_trip() {
-    for (tenant, id) in [
-        (DEFAULT_TENANT, "cartpole"),
-        ("team-a", "maze/v1:x"),
-        ("t.1_x", "a"),
-    ] {
-        let key = task_key(tenant, id);
-        assert_eq!(split_key(&key), (tenant, id));
-    }
-    assert_eq!(task_key(DEFAULT_TENANT, "legacy"), "legacy");
-}
-
 mod group_commit;

@@ -2,7 +2,6 @@
 //! with graceful shutdown.
 
 mod linger;
-pub mod tls;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -15,6 +14,7 @@ use tokio_util::task::TaskTracker;
 use tonic::transport::Server;
 
 use crate::auth::{Access, AuthLayer};
+use crate::net::{self, tls};
 use crate::proto::shaping_server::ShapingServer;
 use crate::registry::Registry;
 use crate::service::status::remap_response_headers;
@@ -187,7 +187,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
             .map_err(|e| tls::TlsError {
                 what: "TLS configuration",
                 file: settings.tls.cert.clone().unwrap_or_default(),
-                problem: tls::chain(&e),
+                problem: net::chain(&e),
             })?,
         None => Server::builder(),
     };
@@ -295,12 +295,12 @@ pub async fn healthcheck(
         let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{addr}"))
             .map_err(|e| e.to_string())?;
         if let Some(config) = tls {
-            endpoint = endpoint.tls_config(config).map_err(|e| tls::chain(&e))?;
+            endpoint = endpoint.tls_config(config).map_err(|e| net::chain(&e))?;
         }
         let channel = endpoint
             .connect()
             .await
-            .map_err(|e| format!("cannot connect to {addr}: {}", tls::chain(&e)))?;
+            .map_err(|e| format!("cannot connect to {addr}: {}", net::chain(&e)))?;
         let service = <ShapingServer<ShapingService> as tonic::server::NamedService>::NAME;
         let answer = HealthClient::new(channel)
             .check(HealthCheckRequest {
@@ -308,7 +308,7 @@ pub async fn healthcheck(
             })
             .await
             .map_err(|s| {
-                let why = tls::status_chain(&s);
+                let why = net::status_chain(&s);
                 let hint = if plaintext && why.contains("h2 protocol error") {
                     " (does the server have TLS on? then give --tls-ca or TAMRM_TLS_CA)"
                 } else {

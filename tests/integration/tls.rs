@@ -14,8 +14,8 @@ use rcgen::{
     BasicConstraints, CertificateParams, CertifiedIssuer, DnType, ExtendedKeyUsagePurpose, IsCa,
     KeyPair,
 };
+use tamrm::net::tls::TlsFiles;
 use tamrm::proto::shaping_client::ShapingClient;
-use tamrm::server::tls::TlsFiles;
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 
 /// A certificate authority made for one test.
@@ -123,7 +123,7 @@ async fn call(addr: SocketAddr, tls: Option<ClientTlsConfig>) -> Result<usize, S
 }
 
 fn chain(e: &dyn std::error::Error) -> String {
-    tamrm::server::tls::chain(e)
+    tamrm::net::chain(e)
 }
 
 #[tokio::test(flavor = "multi_thread")]

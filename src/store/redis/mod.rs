@@ -2,7 +2,7 @@
 //! servers (SPEC §10). `docs/scaling.md` describes the layout, the guarantees and the
 //! staleness bound.
 //!
-//! Layout, for a task key `K` (see [`crate::registry::task_key`]; `keys.rs`); every key of a task
+//! Layout, for a task key `K` (see [`crate::task_key`]; `keys.rs`); every key of a task
 //! carries the hash tag `{K}`, so a task lives in one Redis Cluster slot:
 //! - `tamrm:{K}:meta`, a hash: `config` (JSON), `capacity`, `version`, `next_seq`,
 //!   `incarnation` (names this creation of `K`, so that a server holding a deleted task

@@ -200,7 +200,7 @@ fn transport_error(target: &str, tls: bool, s: Status) -> Status {
         // The server's own answer, or our deadline: as it is.
         return s;
     }
-    let detail = tamrm::server::tls::status_chain(&s);
+    let detail = tamrm::net::status_chain(&s);
     if expired(&s) {
         // The call's deadline passed in tonic's timeout layer (it says CANCELLED).
         return Status::deadline_exceeded(format!(
@@ -257,7 +257,7 @@ fn may_fail_over(method: &str, s: &Status) -> bool {
     }
     std::error::Error::source(s).is_none()
         || IDEMPOTENT.contains(&method)
-        || tamrm::server::tls::status_chain(s)
+        || tamrm::net::status_chain(s)
             .to_lowercase()
             .contains("connect error")
 }

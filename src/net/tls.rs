@@ -1,5 +1,6 @@
 //! TLS (rustls, through tonic): the server's certificate, key and optional client CA
-//! (mutual TLS), and the client side of `tamrm healthcheck`.
+//! (mutual TLS), and the client side of `tamrm healthcheck`. The settings declare these
+//! files (flags, variables, the config file's `[tls]`), the server uses them.
 //!
 //! The PEM files are read and parsed here, before tonic sees them, so that a missing,
 //! unreadable or malformed file is reported by name (tonic's own errors name none).
@@ -12,6 +13,8 @@ use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, PrivateKeyDer};
 use serde::Deserialize;
 use tonic::transport::{Certificate, ClientTlsConfig, Identity, Server, ServerTlsConfig};
+
+use super::chain;
 
 /// How long a TLS handshake may take before the connection is dropped (a client that
 /// connects and never speaks must not hold a task forever).
@@ -134,30 +137,6 @@ fn read_key(file: &Path) -> Result<Vec<u8>, TlsError> {
         problem: format!("no usable PEM private key (PKCS#8, PKCS#1 or SEC1) in it ({e})"),
     })?;
     Ok(pem)
-}
-
-/// An error with its sources, which is where tonic keeps the detail.
-pub fn chain(e: &dyn std::error::Error) -> String {
-    with_sources(e.to_string(), e.source())
-}
-
-/// A failed call's message with the causes tonic keeps in its source chain (for a
-/// transport failure, such as a refused client certificate, the message alone is just
-/// "transport error").
-pub fn status_chain(s: &tonic::Status) -> String {
-    with_sources(s.message().to_string(), std::error::Error::source(s))
-}
-
-fn with_sources(mut out: String, mut source: Option<&dyn std::error::Error>) -> String {
-    while let Some(e) = source {
-        let text = e.to_string();
-        if !out.contains(&text) {
-            out.push_str(": ");
-            out.push_str(&text);
-        }
-        source = e.source();
-    }
-    out
 }
 
 /// The server's TLS configuration, `None` when TLS is off. Every file is read and

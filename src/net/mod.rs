@@ -1,0 +1,10 @@
+//! What the server, its settings and the clients share about the wire, below all of them:
+//! the TLS files and their checks ([`tls`]), and the full text of a failed call
+//! ([`status_chain`], [`chain`]). A leaf module: it uses nothing of the crate, so
+//! `settings`, `server` and the Python extension (`clients/python/native`) use it without
+//! using each other.
+
+mod status;
+pub mod tls;
+
+pub use status::{chain, status_chain};
