@@ -8,9 +8,12 @@
 //! call sees, and the tenant's quotas. Without a key file every caller is
 //! [`Caller::open`]: the default tenant with every right (the server says so at start).
 //!
-//! The key file is read again by [`Access::reload`] (on SIGHUP); open streams keep going,
-//! usage counters (open streams, the steps-per-second bucket) carry over.
+//! The key file is read again by [`Access::reload`] (on SIGHUP); usage counters (open
+//! streams, the steps-per-second bucket) carry over. An open stream whose key the reload
+//! removes, or whose role it lowers below the stream's, ends at once ([`StreamWatch`]);
+//! the other streams keep going.
 
+mod grant;
 mod keys;
 mod layer;
 
@@ -24,9 +27,13 @@ use parking_lot::{Mutex, RwLock};
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
 use subtle::{ConditionallySelectable, ConstantTimeEq};
+use tokio_util::sync::CancellationToken;
 
+pub use grant::StreamWatch;
 pub use keys::{check_tenant, Key, KeyFile, KeyFileError, Quotas, MAX_TENANT_LEN};
 pub use layer::AuthLayer;
+
+use grant::Grant;
 
 use crate::error::Error;
 use crate::task_key::DEFAULT_TENANT;
@@ -109,6 +116,8 @@ pub fn needed_role(path: &str) -> Option<Role> {
 pub struct Caller {
     role: Role,
     tenant: Arc<TenantState>,
+    /// The key's standing across reloads; `None` for [`Caller::open`].
+    grant: Option<Arc<Grant>>,
 }
 
 impl std::fmt::Debug for Caller {
@@ -127,7 +136,19 @@ impl Caller {
         Caller {
             role: Role::Admin,
             tenant: Arc::new(TenantState::new(DEFAULT_TENANT, Quotas::default())),
+            grant: None,
         }
+    }
+
+    /// Watches a stream of the streaming RPC `rpc` (one of [`STREAMING_RPCS`]): the
+    /// watch ends when `shutdown` is cancelled or when a key file reload removes the
+    /// caller's key or lowers its role below the one `rpc` needs.
+    pub fn watch_stream(&self, rpc: &'static str, shutdown: &CancellationToken) -> StreamWatch {
+        let needed = SHAPING_ROLES
+            .iter()
+            .find(|(m, _)| *m == rpc)
+            .map_or(Role::Admin, |(_, r)| *r);
+        StreamWatch::new(self.grant.as_ref(), needed, rpc, shutdown)
     }
 
     /// The caller's tenant.
@@ -283,7 +304,11 @@ impl Access {
         &self.path
     }
 
+    /// Puts `file` in force: keeps the tenants' usage, keeps each key's grant while the
+    /// key stays with the same tenant (with its new role), and ends the streams of the
+    /// keys it removes or lowers.
     fn install(&self, file: KeyFile) -> (usize, usize) {
+        let old = self.keys.read().clone();
         let mut tenants = std::collections::BTreeSet::new();
         for t in file
             .keys
@@ -312,11 +337,18 @@ impl Access {
                     .entry(k.tenant.clone())
                     .or_insert_with(|| Arc::new(TenantState::new(&k.tenant, Quotas::default())))
                     .clone();
+                let kept = old
+                    .keys
+                    .iter()
+                    .find(|(d, c)| *d == k.digest && c.tenant.name == k.tenant)
+                    .and_then(|(_, c)| c.grant.clone());
+                let grant = kept.unwrap_or_else(|| Grant::new(&k.digest, &k.tenant, k.role));
                 (
                     k.digest,
                     Caller {
                         role: k.role,
                         tenant,
+                        grant: Some(grant),
                     },
                 )
             })
@@ -324,6 +356,16 @@ impl Access {
         let set = KeySet { keys };
         let counts = (set.keys.len(), tenants.len());
         *self.keys.write() = Arc::new(set);
+        let new = self.keys.read().clone();
+        for (digest, caller) in &old.keys {
+            let Some(grant) = &caller.grant else { continue };
+            let now = new
+                .keys
+                .iter()
+                .find(|(d, c)| d == digest && c.tenant.name == grant.tenant())
+                .map(|(_, c)| c.role);
+            grant.set_role(now);
+        }
         counts
     }
 

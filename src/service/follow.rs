@@ -6,12 +6,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc::Sender;
-use tokio_util::sync::CancellationToken;
 use tonic::{Status, Streaming};
 
 use super::convert::{pool_proto, task_proto, trajectory_proto};
 use super::status::remap_decode_status;
-use crate::auth::{Caller, StreamSlot};
+use crate::auth::{Caller, StreamSlot, StreamWatch};
 use crate::error::Error;
 use crate::proto::{
     follow_request, follow_response, EndsAck, EpisodeEnds, FollowRequest, FollowResponse,
@@ -49,13 +48,14 @@ fn idle_message(idle: Duration) -> Status {
     ))
 }
 
-/// Reads the next client message, or ends the stream: at shutdown, when the client
+/// Reads the next client message, or ends the stream: at shutdown or when a key file
+/// reload takes the stream's key away, when the client
 /// half-closes, on a transport error, or after `idle` without a message. With `session`,
 /// also returns when the task's pool changes.
 async fn next(
     inbound: &mut Streaming<FollowRequest>,
     session: Option<&mut FollowSession>,
-    shutdown: &CancellationToken,
+    watch: &StreamWatch,
     idle: Option<(Duration, tokio::time::Instant)>,
 ) -> Result<Event, End> {
     let idle_timer = async {
@@ -72,7 +72,7 @@ async fn next(
     };
     tokio::select! {
         biased;
-        _ = shutdown.cancelled() => Err(Error::ShuttingDown.into()),
+        _ = watch.ended() => Err(watch.why().into()),
         r = changed => r.map(|()| Event::PoolChanged).map_err(End::from),
         msg = inbound.message() => match msg {
             Ok(Some(FollowRequest { kind: Some(kind) })) => Ok(Event::Message(kind)),
@@ -154,7 +154,7 @@ async fn decide(
 
 async fn serve(
     registry: Arc<Registry>,
-    shutdown: CancellationToken,
+    watch: &StreamWatch,
     caller: &Caller,
     metrics: Option<Arc<Metrics>>,
     mut inbound: Streaming<FollowRequest>,
@@ -163,7 +163,7 @@ async fn serve(
     let secs = registry.limits().stream_idle_timeout_secs;
     let idle = (secs > 0).then(|| Duration::from_secs(secs));
     let deadline = || idle.map(|d| (d, tokio::time::Instant::now() + d));
-    let mut session = match next(&mut inbound, None, &shutdown, deadline()).await {
+    let mut session = match next(&mut inbound, None, watch, deadline()).await {
         Ok(Event::Message(follow_request::Kind::Open(o))) => {
             let req = OpenRequest {
                 tenant: caller.tenant(),
@@ -198,7 +198,7 @@ async fn serve(
     let meter = metrics.map(|m| m.shape(session.task().key()));
     let mut until = deadline();
     loop {
-        let event = next(&mut inbound, Some(&mut session), &shutdown, until).await;
+        let event = next(&mut inbound, Some(&mut session), watch, until).await;
         let msg = match event {
             Ok(Event::PoolChanged) => {
                 if !send_news(&mut session, tx).await {
@@ -233,13 +233,13 @@ async fn serve(
 /// final status; the caller's stream slot is held until then.
 pub(super) async fn run(
     registry: Arc<Registry>,
-    shutdown: CancellationToken,
+    watch: StreamWatch,
     (caller, _slot): (Caller, StreamSlot),
     metrics: Option<Arc<Metrics>>,
     inbound: Streaming<FollowRequest>,
     tx: Tx,
 ) {
-    match serve(registry, shutdown, &caller, metrics, inbound, &tx).await {
+    match serve(registry, &watch, &caller, metrics, inbound, &tx).await {
         End::ClientDone => {}
         End::Fail(status) => {
             tracing::debug!(code = ?status.code(), message = status.message(), "follow stream ended with an error");

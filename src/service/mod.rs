@@ -18,7 +18,7 @@ use tonic::codegen::{http, Body, BoxFuture, Service, StdError};
 use tonic::server::NamedService;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::auth::Caller;
+use crate::auth::{Caller, StreamWatch};
 use crate::error::Error;
 use crate::proto::shaping_server::{Shaping, ShapingServer};
 use crate::proto::{self};
@@ -93,7 +93,7 @@ impl ShapingService {
         &self,
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<ReceiverStream<Result<A, Status>>>, Status> {
-        self.start_stream(request, stream::run::<A>)
+        self.start_stream("Shape", request, stream::run::<A>)
     }
 
     /// Starts a Follow stream (SPEC §13).
@@ -101,17 +101,19 @@ impl ShapingService {
         &self,
         request: Request<Streaming<proto::FollowRequest>>,
     ) -> Result<Response<ReceiverStream<Result<proto::FollowResponse, Status>>>, Status> {
-        self.start_stream(request, follow::run)
+        self.start_stream("Follow", request, follow::run)
     }
 
-    /// Takes one of the caller's stream slots and spawns `run`, which drives the stream
+    /// Takes one of the caller's stream slots, watches the caller's key (a reload that
+    /// takes the key away ends the stream) and spawns `run`, which drives the stream
     /// to its end and sends its answers (two at most queued).
     fn start_stream<Req, Resp, Fut>(
         &self,
+        rpc: &'static str,
         request: Request<Streaming<Req>>,
         run: impl FnOnce(
             Arc<Registry>,
-            CancellationToken,
+            StreamWatch,
             (Caller, crate::auth::StreamSlot),
             Option<Arc<Metrics>>,
             Streaming<Req>,
@@ -123,11 +125,12 @@ impl ShapingService {
     {
         let caller = self.caller(&request)?;
         let slot = caller.open_stream()?;
+        let watch = caller.watch_stream(rpc, &self.shutdown);
         let inbound = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         tokio::spawn(run(
             self.registry.clone(),
-            self.shutdown.clone(),
+            watch,
             (caller, slot),
             self.metrics.clone(),
             inbound,

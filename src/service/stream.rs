@@ -6,13 +6,12 @@ use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use tokio::sync::mpsc::Sender;
-use tokio_util::sync::CancellationToken;
 use tonic::{Status, Streaming};
 
 use super::codec::{encode_shaped, Answer};
 use super::convert::{batch_view, resume_views, shaped_proto, task_proto};
 use super::status::remap_decode_status;
-use crate::auth::{Caller, StreamSlot};
+use crate::auth::{Caller, StreamSlot, StreamWatch};
 use crate::error::Error;
 use crate::proto::{shape_request, shape_response, ShapeRequest, ShapeResponse};
 use crate::registry::Registry;
@@ -67,12 +66,13 @@ impl From<Error> for End {
     }
 }
 
-/// Reads the next client message, or ends the stream: at shutdown (only between
-/// batches, never in the middle of one), when the client half-closes, on a transport
-/// error, or after `idle` without a message.
+/// Reads the next client message, or ends the stream: at shutdown or when a key file
+/// reload takes the stream's key away (only between batches, never in the middle of
+/// one), when the client half-closes, on a transport error, or after `idle` without a
+/// message.
 async fn next(
     inbound: &mut Streaming<ShapeRequest>,
-    shutdown: &CancellationToken,
+    watch: &StreamWatch,
     idle: Option<Duration>,
 ) -> Result<shape_request::Kind, End> {
     let idle_timer = async {
@@ -83,7 +83,7 @@ async fn next(
     };
     tokio::select! {
         biased;
-        _ = shutdown.cancelled() => Err(Error::ShuttingDown.into()),
+        _ = watch.ended() => Err(watch.why().into()),
         _ = idle_timer => Err(End::Fail(Status::unavailable(format!(
             "stream idle for {}s without a message: closed by the server (stream_idle_timeout_secs); reconnect to go on",
             idle.map_or(0, |d| d.as_secs())
@@ -103,7 +103,7 @@ async fn next(
 
 async fn serve<A: Answers>(
     registry: Arc<Registry>,
-    shutdown: CancellationToken,
+    watch: &StreamWatch,
     caller: &Caller,
     metrics: Option<Arc<Metrics>>,
     mut inbound: Streaming<ShapeRequest>,
@@ -111,7 +111,7 @@ async fn serve<A: Answers>(
 ) -> End {
     let secs = registry.limits().stream_idle_timeout_secs;
     let idle = (secs > 0).then(|| Duration::from_secs(secs));
-    let mut session = match next(&mut inbound, &shutdown, idle).await {
+    let mut session = match next(&mut inbound, watch, idle).await {
         Ok(shape_request::Kind::Open(o)) => {
             let resume = resume_views(&o.resume);
             let req = OpenRequest {
@@ -152,7 +152,7 @@ async fn serve<A: Answers>(
     let mut scores = Vec::new();
     let mut scratch = BytesMut::new();
     loop {
-        let batch = match next(&mut inbound, &shutdown, idle).await {
+        let batch = match next(&mut inbound, watch, idle).await {
             Ok(shape_request::Kind::Steps(b)) => b,
             Ok(shape_request::Kind::Open(_)) => {
                 return Error::invalid("open", "the stream is already open; send steps").into()
@@ -182,13 +182,13 @@ async fn serve<A: Answers>(
 /// status; the caller's stream slot is held until then.
 pub(super) async fn run<A: Answers>(
     registry: Arc<Registry>,
-    shutdown: CancellationToken,
+    watch: StreamWatch,
     (caller, _slot): (Caller, StreamSlot),
     metrics: Option<Arc<Metrics>>,
     inbound: Streaming<ShapeRequest>,
     tx: Tx<A>,
 ) {
-    match serve(registry, shutdown, &caller, metrics, inbound, &tx).await {
+    match serve(registry, &watch, &caller, metrics, inbound, &tx).await {
         End::ClientDone => {}
         End::Fail(status) => {
             tracing::debug!(code = ?status.code(), message = status.message(), "stream ended with an error");

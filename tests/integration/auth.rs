@@ -1,7 +1,7 @@
 //! API keys, roles, tenants and quotas (SPEC §11) against a real server on 127.0.0.1:0:
 //! the credential matrix, tenant isolation on every RPC (Shape included), quotas, the
-//! key file read again on SIGHUP without dropping open streams, and data written before
-//! tenants existed.
+//! key file read again on SIGHUP (ending the open streams of removed or lowered keys),
+//! and data written before tenants existed.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -602,57 +602,145 @@ fn a_bad_key_file_stops_the_start_with_exit_2_naming_it() {
     }
 }
 
-/// The real binary reads its key file again on SIGHUP: a removed key stops working, a
-/// new one works, and a stream opened before keeps going.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn sighup_reloads_keys_without_dropping_streams() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = key_file(dir.path(), &[("t", "admin")], "");
-    let bin = Binary::start(&["--api-keys", file.to_str().unwrap()]);
-    let mut c = connect(bin.addr).await;
-    let old = key("t", "admin");
-    call(&mut c, "CreateTask", Some(&old), "x").await.unwrap();
-    let (tx, mut rx) = open(&mut c, Some(&old), "x", 1).await.unwrap();
-    step(&tx, &mut rx, batch(&[0], &[1.0], &[false]))
-        .await
-        .unwrap();
+/// Writes a key file of (key, tenant, role) entries at `path`.
+fn write_keys(path: &Path, keys: &[(&str, &str, &str)]) {
+    let mut text = String::new();
+    for (key, tenant, role) in keys {
+        text += &format!(
+            "[[keys]]\ntenant = \"{tenant}\"\nrole = \"{role}\"\nsha256 = \"{}\"\n",
+            hash_key(key.as_bytes())
+        );
+    }
+    std::fs::write(path, text).unwrap();
+}
 
-    key_file(dir.path(), &[("t", "writer")], "");
+/// The first 8 hex digits of a key's SHA-256: how logs and messages name a key.
+fn prefix(key: &str) -> String {
+    hash_key(key.as_bytes())[..8].to_string()
+}
+
+fn hangup(bin: &Binary) {
     let pid = bin.child.id().to_string();
     assert!(std::process::Command::new("kill")
         .args(["-HUP", &pid])
         .status()
         .unwrap()
         .success());
-    let new = key("t", "writer");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    loop {
-        let old_gone = call(&mut c, "GetTask", Some(&old), "x").await.is_err();
-        let new_works = call(&mut c, "GetTask", Some(&new), "x").await.is_ok();
-        if old_gone && new_works {
-            break;
-        }
-        assert!(Instant::now() < deadline, "the key file was not read again");
-        tokio::time::sleep(Duration::from_millis(20)).await;
+}
+
+/// The real binary reads its key file again on SIGHUP: a removed key stops working and
+/// every open stream it authorised ends with UNAUTHENTICATED, idle or not; a key lowered
+/// to reader ends its streams with PERMISSION_DENIED; the streams of a key lowered from
+/// admin to writer (still enough) and of other keys go on, in the same episode; the log
+/// names each key by tenant and hash prefix, never the key.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sighup_ends_the_streams_of_removed_and_lowered_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("keys.toml");
+    let (admin, gone, low, other) = (
+        "secret-admin-of-t",
+        "secret-writer-of-t",
+        "secret-writer-of-u",
+        "secret-writer-of-v",
+    );
+    write_keys(
+        &file,
+        &[
+            (admin, "t", "admin"),
+            (gone, "t", "writer"),
+            (low, "u", "writer"),
+            (other, "v", "writer"),
+        ],
+    );
+    let bin = Binary::start(&["--api-keys", file.to_str().unwrap()]);
+    let mut c = connect(bin.addr).await;
+    for (key, task) in [(admin, "x"), (low, "y"), (other, "z")] {
+        call(&mut c, "CreateTask", Some(key), task).await.unwrap();
     }
-    // The new key has the writer role: no deletes.
-    let e = call(&mut c, "DeleteTask", Some(&new), "x")
+    let first = || batch(&[0], &[1.0], &[false]);
+    let (admin_tx, mut admin_rx) = open(&mut c, Some(admin), "x", 1).await.unwrap();
+    step(&admin_tx, &mut admin_rx, first()).await.unwrap();
+    let (other_tx, mut other_rx) = open(&mut c, Some(other), "z", 1).await.unwrap();
+    step(&other_tx, &mut other_rx, first()).await.unwrap();
+    // Two streams of the key to be removed: one that stepped, one idle since it opened.
+    let (gone_tx, mut gone_rx) = open(&mut c, Some(gone), "x", 1).await.unwrap();
+    step(&gone_tx, &mut gone_rx, first()).await.unwrap();
+    let (_idle_tx, mut idle_rx) = open(&mut c, Some(gone), "x", 1).await.unwrap();
+    let follow = |task: &str| proto::FollowOpen {
+        task_id: task.into(),
+        num_envs: 1,
+        client_id: format!("learner-{task}"),
+    };
+    let (mut low_follow, _) = Follower::open_with(&mut c, Some(low), follow("y"))
+        .await
+        .unwrap();
+    let (mut admin_follow, _) = Follower::open_with(&mut c, Some(admin), follow("x"))
+        .await
+        .unwrap();
+
+    write_keys(
+        &file,
+        &[
+            (admin, "t", "writer"),
+            (low, "u", "reader"),
+            (other, "v", "writer"),
+        ],
+    );
+    hangup(&bin);
+    // The idle streams end without a message from their clients.
+    let e = tokio::time::timeout(Duration::from_secs(10), idle_rx.message())
+        .await
+        .expect("an idle stream of a removed key ends within 10 s")
+        .unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated, "{e:?}");
+    assert!(
+        e.message().contains("removed") && e.message().contains(&prefix(gone)),
+        "{e:?}"
+    );
+    let e = low_follow.status().await;
+    assert_eq!(e.code(), Code::PermissionDenied, "{e:?}");
+    assert!(
+        e.message().contains("role reader") && e.message().contains("Follow needs role writer"),
+        "{e:?}"
+    );
+    // The removed key's other stream: its next batch is answered with the refusal.
+    let e = step(&gone_tx, &mut gone_rx, first()).await.unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated, "{e:?}");
+
+    // The streams of other keys, and of the key still writer, go on in their episodes.
+    for (tx, rx) in [(&admin_tx, &mut admin_rx), (&other_tx, &mut other_rx)] {
+        let shaped = step(tx, rx, batch(&[1], &[1.0], &[true])).await.unwrap();
+        assert_eq!(shaped.steps, [1]);
+    }
+    admin_follow.ends(Vec::new(), 0).await.unwrap();
+    // New calls see the new file.
+    let e = call(&mut c, "GetTask", Some(gone), "x").await.unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated);
+    call(&mut c, "GetTask", Some(low), "y").await.unwrap();
+    let e = open(&mut c, Some(low), "y", 1).await.unwrap_err();
+    assert_eq!(e.code(), Code::PermissionDenied);
+    let e = call(&mut c, "DeleteTask", Some(admin), "x")
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::PermissionDenied);
-    // The stream opened with the old key goes on, in the same episode.
-    let shaped = step(&tx, &mut rx, batch(&[1], &[1.0], &[true]))
-        .await
-        .unwrap();
-    assert_eq!(shaped.steps, [1]);
-    drop((tx, rx, c));
+
+    drop((admin_tx, admin_rx, other_tx, other_rx, admin_follow, c));
     let (status, log) = bin.terminate();
     assert!(status.success(), "{log}");
     assert!(log.contains("API key file read again"), "{log}");
-    assert!(
-        !log.contains(&old) && !log.contains(&new),
-        "a key was logged: {log}"
-    );
+    let said = |tenant: &str, key: &str, ended: usize| {
+        log.lines().any(|l| {
+            l.contains(&format!("tenant={tenant}"))
+                && l.contains(&format!("key={}", prefix(key)))
+                && l.contains(&format!("streams_ended={ended}"))
+        })
+    };
+    assert!(said("t", gone, 2), "the removal is not logged: {log}");
+    assert!(said("u", low, 1), "the lowering is not logged: {log}");
+    assert!(said("t", admin, 0), "{log}");
+    for key in [admin, gone, low, other] {
+        assert!(!log.contains(key), "a key was logged: {log}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
