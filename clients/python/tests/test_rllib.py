@@ -328,6 +328,12 @@ def test_multi_agent_steps_shaped_as_one_env_sessions(
         # (RLlib 2.60 drops the last step of an agent terminated without an observation
         # right after it cut the chunk), which was then abandoned.
         assert n == len(LOG[key]) or (n < len(LOG[key]) and not done and counts.abandoned)
+    # Not vacuous: agents died before their episode's end, and "c" joined late.
+    assert any(done and LOG[k][-1][2] for k, (_, done) in recorded.items())
+    assert any(
+        a == "c" and sa.t_started == 0 and sa.get_observations(0)[0] > 0
+        for _, a, sa in _agent_chunks(episodes)
+    )
     for task in set(names.values()):
         mine = [v for k, v in recorded.items() if names[k[1]] == task]
         stats = remote_client.get_task(task).stats

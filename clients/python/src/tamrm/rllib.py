@@ -427,11 +427,11 @@ class KnnShaping(ConnectorV2):  # type: ignore[misc]
             slot = self._slot(index, agent_id, episode, sa)
             for k in range(first, length):
                 last = k == length - 1 and sa.is_done
-                reward = float(sa.get_rewards(k))
+                reward = float(_item(sa.rewards, k))
                 state.env_return += reward
                 score = None
                 if last and self.score_key is not None:
-                    info = sa.get_infos(k + 1)
+                    info = _item(sa.infos, k + 1)
                     if self.score_key in info:
                         score = float(info[self.score_key])
                 rows.append(
@@ -439,7 +439,7 @@ class KnnShaping(ConnectorV2):  # type: ignore[misc]
                         slot,
                         sa,
                         k,
-                        sa.get_actions(k),
+                        _item(sa.actions, k),
                         reward,
                         bool(last and sa.is_terminated),
                         bool(last and sa.is_truncated and not sa.is_terminated),
@@ -579,26 +579,51 @@ class KnnShaping(ConnectorV2):  # type: ignore[misc]
             env_ids=np.fromiter((r.slot.env_id for r in rows), dtype=np.int64, count=size),
             episode_scores=scores or None,
         )
-        for i, row in enumerate(rows):
+        columns = zip(
+            rows,
+            result.rewards.tolist(),
+            result.knn_rewards.tolist(),
+            result.potentials.tolist(),
+            result.steps.tolist(),
+            result.knn_active.tolist(),
+            strict=True,
+        )
+        for row, shaped, knn, potential, step, knn_active in columns:
             sa = row.sa_episode
-            sa.set_rewards(new_data=float(result.rewards[i]), at_indices=row.index)
-            info = dict(sa.get_infos(row.index + 1) or {})
+            _put(sa.rewards, row.index, shaped)
+            info = dict(_item(sa.infos, row.index + 1) or {})
             info.update(
                 original_reward=row.reward,
-                knn_reward=float(result.knn_rewards[i]),
-                potential=float(result.potentials[i]),
-                shaping_step=int(result.steps[i]),
-                knn_active=bool(result.knn_active[i]),
+                knn_reward=knn,
+                potential=potential,
+                shaping_step=step,
+                knn_active=knn_active,
                 pool_version=result.pool_version,
             )
             # A new dict: RLlib repeats the previous info object for an agent that
             # terminates without an observation.
-            sa.infos.set(new_data=info, at_indices=row.index + 1)
+            _put(sa.infos, row.index + 1, info)
             if row.terminated or row.truncated:
                 self._counts.episodes += 1
         knn_sum += float(result.knn_rewards.sum())
         active += int(result.knn_active.sum())
         return knn_sum, active
+
+
+def _item(buf: Any, k: int) -> Any:
+    """Item ``k`` (0: the first after the lookback) of an episode's InfiniteLookbackBuffer."""
+    data = buf.data
+    if isinstance(data, list):  # an episode being sampled: index its list directly
+        return data[buf.lookback + k]
+    return buf.get(k)
+
+
+def _put(buf: Any, k: int, value: Any) -> None:
+    """Overwrite item ``k`` of an episode's InfiniteLookbackBuffer."""
+    if isinstance(buf.data, list):
+        buf.data[buf.lookback + k] = value
+    else:
+        buf.set(new_data=value, at_indices=k)
 
 
 #: The attributes starting with ``_`` that a pickled :class:`KnnShaping` keeps
