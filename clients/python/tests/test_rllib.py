@@ -495,6 +495,11 @@ def test_one_client_per_process(monkeypatch: pytest.MonkeyPatch, server: tamrm.L
     assert tamrm.rllib.process_client(server.address) is first
     assert tamrm.rllib.process_client(server.address, timeout=5.0) is not first
     assert first.target == server.address
+    # The key, too, is the EnvRunner process's own TAMRM_API_KEY when not given.
+    monkeypatch.setenv("TAMRM_API_KEY", "runner-key")
+    keyed = tamrm.rllib.process_client()
+    assert keyed is not first and keyed._connection["api_key"] == "runner-key"
+    assert tamrm.rllib.process_client(api_key="runner-key") is keyed
 
 
 def test_pickled_connector_and_config_shape_on_their_own(
