@@ -516,6 +516,82 @@ fn the_python_extension_uses_public_seams_not_the_servers_internals() {
     );
 }
 
+/// Files whose inline tests move to their own file when their owner next changes them
+/// (the one style below; nothing else may join this list).
+const INLINE_TESTS_PENDING: [&str; 1] = ["core/pool.rs"];
+
+/// Where a test module declared in `file` (`mod name;`) lives: Rust's default path.
+fn test_module_file(file: &Path, name: &str) -> PathBuf {
+    let dir = file.parent().unwrap();
+    if file
+        .file_name()
+        .is_some_and(|n| n == "mod.rs" || n == "lib.rs")
+    {
+        dir.join(format!("{name}.rs"))
+    } else {
+        dir.join(file.file_stem().unwrap())
+            .join(format!("{name}.rs"))
+    }
+}
+
+/// The one style of the crate's unit tests (CONTRIBUTING.md, "Tests in the Rust crate"):
+/// `#[cfg(test)] mod tests;` at the end of the module, its body in a file of its own at
+/// Rust's default path; no inline test module, no `#[path]`.
+#[test]
+fn unit_tests_live_in_a_file_of_their_own() {
+    let mut files = Vec::new();
+    rust_files(&src(), &mut files);
+    let mut declared = 0;
+    for file in files {
+        let text = fs::read_to_string(&file).unwrap();
+        let rel = file
+            .strip_prefix(src())
+            .unwrap()
+            .to_string_lossy()
+            .into_owned();
+        let lines: Vec<&str> = text.lines().map(str::trim).collect();
+        for (n, line) in lines.iter().enumerate() {
+            let at = format!("src/{rel}:{}", n + 1);
+            assert!(
+                !line.starts_with("#[path"),
+                "{at}: no #[path]: put the module at Rust's default path"
+            );
+            if *line != "#[cfg(test)]" {
+                continue;
+            }
+            // The item the attribute gates, past any further attributes.
+            let Some(item) = lines[n + 1..].iter().find(|l| !l.starts_with("#[")) else {
+                continue;
+            };
+            let Some(decl) = item
+                .strip_prefix("mod ")
+                .or_else(|| item.strip_prefix("pub(crate) mod "))
+            else {
+                continue;
+            };
+            if decl.ends_with('{') && INLINE_TESTS_PENDING.contains(&rel.as_str()) {
+                continue;
+            }
+            let name = decl.strip_suffix(';').unwrap_or_else(|| {
+                panic!(
+                    "{at}: `{item}`: move the test module into a file of its own (`mod {};`)",
+                    decl.trim_end_matches([' ', '{'])
+                )
+            });
+            assert!(
+                test_module_file(&file, name).is_file(),
+                "{at}: `{item}` is not at {}",
+                test_module_file(&file, name).display()
+            );
+            declared += 1;
+        }
+    }
+    assert!(
+        declared > 20,
+        "found {declared} test modules: is the check blind?"
+    );
+}
+
 /// Every RPC of `tamrm.v1.Shaping` has its role in the one table (SPEC §11), and the
 /// table names no RPC the proto lacks.
 /// The descriptors of `proto/`, as the server embeds them.

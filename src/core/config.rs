@@ -328,5 +328,4 @@ impl TaskConfig {
 }
 
 #[cfg(test)]
-#[path = "config_tests.rs"]
 mod tests;

@@ -268,5 +268,4 @@ pub fn encode_shaped(s: &Shaped<'_>, out: &mut BytesMut) {
 }
 
 #[cfg(test)]
-#[path = "codec_tests.rs"]
 mod tests;

@@ -334,5 +334,4 @@ enum SentValues {
 }
 
 #[cfg(test)]
-#[path = "batch_tests.rs"]
 mod tests;

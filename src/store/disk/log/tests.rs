@@ -1,0 +1,94 @@
+use super::*;
+use crate::core::{ActionSeq, Trajectory};
+use std::sync::Arc;
+
+fn pools() -> (Pool, Pool) {
+    let t = |seq, score| Trajectory {
+        actions: ActionSeq::Discrete(vec![1, 2, seq as u32]),
+        score,
+        seq,
+    };
+    let base = Pool::restore(3, vec![t(1, 1.0), t(2, 2.0)], 2, 3).unwrap();
+    let after = Pool::restore(3, vec![t(2, 2.0), t(3, 3.0)], 3, 4).unwrap();
+    (base, after)
+}
+
+fn log_of(groups: &[Vec<u8>]) -> Vec<u8> {
+    let mut b = header();
+    groups.iter().for_each(|g| b.extend_from_slice(g));
+    b
+}
+
+#[test]
+fn records_round_trip() {
+    let (base, after) = pools();
+    let c = Counters {
+        episodes_completed: 7,
+        steps_shaped: 99,
+    };
+    let r = encode_commit("a/b", &base, &after, c);
+    let g = encode_group(&[&r, &r]);
+    let s = scan(&log_of(&[g])).unwrap();
+    assert!(s.torn.is_none());
+    let Record::Commit(rec) = &s.groups[0].records[1] else {
+        panic!("a commit record")
+    };
+    assert_eq!(
+        (
+            rec.task.as_str(),
+            rec.base_version,
+            rec.version,
+            rec.next_seq
+        ),
+        ("a/b", 2, 3, 4)
+    );
+    assert_eq!((rec.counters, rec.seqs.clone()), (c, vec![2, 3]));
+    let t3: &Arc<Trajectory> = &after.trajectories()[1];
+    assert_eq!(rec.added, vec![encode_trajectory(t3)]);
+}
+
+#[test]
+fn ends_records_round_trip_beside_commits() {
+    let (base, after) = pools();
+    let c = encode_commit("t", &base, &after, Counters::default());
+    let e = encode_ends("t", "client-1", &[(0, 3), (7, u64::MAX)]);
+    let s = scan(&log_of(&[encode_group(&[&c, &e])])).unwrap();
+    let records = &s.groups[0].records;
+    assert!(matches!(&records[0], Record::Commit(r) if r.version == 3));
+    assert_eq!(
+        records[1],
+        Record::Ends(Ends {
+            task: "t".into(),
+            client: "client-1".into(),
+            counts: vec![(0, 3), (7, u64::MAX)],
+        })
+    );
+    assert_eq!(records[1].task(), "t");
+    let mut unknown = e.clone();
+    unknown[0] = 9;
+    let err = scan(&log_of(&[encode_group(&[&unknown])])).unwrap_err();
+    assert!(err.contains("unknown record kind 9"), "{err}");
+}
+
+#[test]
+fn a_torn_last_group_is_dropped_and_an_earlier_bad_one_is_corruption() {
+    let (base, after) = pools();
+    let c = encode_commit("t", &base, &after, Counters::default());
+    let e = encode_ends("t", "client", &[(0, 1), (1, 2)]);
+    let g = encode_group(&[&c, &e]);
+    let full = log_of(&[g.clone(), g.clone()]);
+    let first_end = HEADER_LEN as usize + g.len();
+    for cut in first_end..full.len() {
+        let s = scan(&full[..cut]).unwrap();
+        assert_eq!(s.groups.len(), 1, "cut {cut}");
+        assert_eq!(s.torn.is_some(), cut > first_end, "cut {cut}");
+    }
+    for i in HEADER_LEN as usize..first_end {
+        let mut b = full.clone();
+        b[i] ^= 0x10;
+        assert!(scan(&b).is_err(), "flip at {i}");
+    }
+    for cut in 0..HEADER_LEN as usize {
+        assert!(scan(&full[..cut]).is_err());
+    }
+}
