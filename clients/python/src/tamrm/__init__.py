@@ -14,6 +14,8 @@ Main entry points:
 - :mod:`tamrm.sb3`: ``ShapedVecEnv`` for Stable-Baselines3 (extra ``tamrm[sb3]``).
 - :mod:`tamrm.pettingzoo`: ``ShapedParallel`` / ``ShapedAEC`` for PettingZoo
   multi-agent envs (extra ``tamrm[pettingzoo]``).
+- :mod:`tamrm.rllib`: connectors that shape Ray RLlib's EnvRunners and add the potential
+  term on its learners (extra ``tamrm[rllib]``).
 - :func:`local_server`: run a ``tamrm`` binary on a free port for tests and examples.
 """
 
@@ -56,6 +58,7 @@ if TYPE_CHECKING:
     import tamrm.aio as aio
     import tamrm.gym as gym
     import tamrm.pettingzoo as pettingzoo
+    import tamrm.rllib as rllib
     import tamrm.sb3 as sb3
 
 __version__ = "0.1.0"
@@ -96,14 +99,15 @@ __all__ = [
     "gym",
     "local_server",
     "pettingzoo",
+    "rllib",
     "sb3",
 ]
 
-_LAZY = {"aio", "gym", "pettingzoo", "sb3"}
+_LAZY = {"aio", "gym", "pettingzoo", "rllib", "sb3"}
 
 
 def __getattr__(name: str) -> Any:
-    """Import the optional submodules (``aio``, ``gym``, ``pettingzoo``, ``sb3``) on first use."""
+    """Import an optional submodule (``aio``, ``gym``, ``pettingzoo``, ``rllib``...) on use."""
     if name in _LAZY:
         module = importlib.import_module(f"tamrm.{name}")
         globals()[name] = module

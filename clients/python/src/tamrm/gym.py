@@ -125,7 +125,7 @@ class ShapedReward(gymnasium.Wrapper[Any, Any, Any, Any], RecordConstructorArgs)
     def close(self) -> None:
         """Close the environment, then the session if the wrapper owns it (``close_session``)."""
         try:
-            super().close()
+            super().close()  # type: ignore[no-untyped-call, unused-ignore]
         finally:
             close_session(self.session, self.close_session)
 
@@ -227,7 +227,8 @@ class VectorShapedReward(VectorWrapper):
         self._obs: ObsBatch | None = None
         self._autoreset = np.zeros(env.num_envs, dtype=np.bool_)
 
-    def reset(
+    # (gymnasium 1.2, which ray[rllib] pins, types VectorWrapper.reset's seed as a list too.)
+    def reset(  # type: ignore[override, unused-ignore]
         self,
         *,
         seed: int | None = None,
@@ -257,7 +258,8 @@ class VectorShapedReward(VectorWrapper):
         finally:
             close_session(self.session, self.close_session)
 
-    def step(
+    # (gymnasium 1.2 types VectorWrapper.step generically.)
+    def step(  # type: ignore[override, unused-ignore]
         self, actions: npt.ArrayLike
     ) -> tuple[
         Any, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
