@@ -165,6 +165,24 @@ fn src() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
 }
 
+/// Every source file under `src/`: its path relative to `src/`, its path and its text.
+fn sources() -> Vec<(String, PathBuf, String)> {
+    let mut files = Vec::new();
+    rust_files(&src(), &mut files);
+    files
+        .into_iter()
+        .map(|file| {
+            let rel = file
+                .strip_prefix(src())
+                .unwrap()
+                .to_string_lossy()
+                .into_owned();
+            let text = fs::read_to_string(&file).unwrap();
+            (rel, file, text)
+        })
+        .collect()
+}
+
 /// A file's code without its comments (what follows `//` on a line; doc comments
 /// included), lines kept in place.
 fn code_of(text: &str) -> String {
@@ -539,16 +557,8 @@ fn test_module_file(file: &Path, name: &str) -> PathBuf {
 /// Rust's default path; no inline test module, no `#[path]`.
 #[test]
 fn unit_tests_live_in_a_file_of_their_own() {
-    let mut files = Vec::new();
-    rust_files(&src(), &mut files);
     let mut declared = 0;
-    for file in files {
-        let text = fs::read_to_string(&file).unwrap();
-        let rel = file
-            .strip_prefix(src())
-            .unwrap()
-            .to_string_lossy()
-            .into_owned();
+    for (rel, file, text) in sources() {
         let lines: Vec<&str> = text.lines().map(str::trim).collect();
         for (n, line) in lines.iter().enumerate() {
             let at = format!("src/{rel}:{}", n + 1);
@@ -589,6 +599,40 @@ fn unit_tests_live_in_a_file_of_their_own() {
     assert!(
         declared > 20,
         "found {declared} test modules: is the check blind?"
+    );
+}
+
+/// How many lines a source file may have before it must say, at its top, why it is one
+/// file (a line `//! Long file: <why>` within its first 40 lines): past that a file
+/// usually holds several jobs, each of which reads better on its own.
+const LONG_FILE: usize = 500;
+
+/// Long files their owners are changing now; they split or give their reason next.
+const LONG_FILES_PENDING: [&str; 2] = ["core/pool.rs", "registry/task.rs"];
+
+#[test]
+fn a_long_source_file_says_why_it_is_one_file() {
+    let mut longest = 0;
+    for (rel, _, text) in sources() {
+        let lines = text.lines().count();
+        longest = longest.max(lines);
+        if lines <= LONG_FILE || LONG_FILES_PENDING.contains(&rel.as_str()) {
+            continue;
+        }
+        let reason = text.lines().take(40).find_map(|l| {
+            l.trim_start()
+                .strip_prefix("//! Long file:")
+                .map(str::trim)
+                .filter(|why| !why.is_empty())
+        });
+        assert!(
+            reason.is_some(),
+            "src/{rel} has {lines} lines (more than {LONG_FILE}): split it by job, or say why it is one file in a line `//! Long file: <why>` at its top"
+        );
+    }
+    assert!(
+        longest > 100,
+        "the longest file has {longest} lines: is the check blind?"
     );
 }
 

@@ -18,10 +18,13 @@
 //!
 //! Split by job: [`codec`] (the files' bytes), [`log`] (the log's bytes), [`files`]
 //! (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the group
-//! commit thread and compaction), [`load`] (start-up and replay), this module (the
-//! [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
+//! commit thread and compaction), [`load`] (start-up and replay), [`dir`] (the data dir's
+//! lock, format marker and log file at open), [`entry`] (a task's state in memory and
+//! what its snapshot lacks), this module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
 
 mod codec;
+mod dir;
+mod entry;
 mod files;
 mod load;
 mod log;
@@ -41,118 +44,17 @@ use super::memory::check_version;
 use super::{apply_ops, Committed, Counters, EndedEpisodes, PoolOp, Store, StoreError, StoredTask};
 use crate::core::{Pool, TaskConfig};
 pub use codec::FORMAT_VERSION;
-use codec::{check_root_format, RootFile, TaskFile, FILE_FORMAT, FORMAT_V1};
 pub(super) use codec::{decode_trajectory_bytes, encode_trajectory};
-use files::{dir_name, err, fsync_dir, read_json, remove_tmp_files, write_atomic};
-use snapshot::{write_ends_file, write_pool_file, write_snapshot};
+use codec::{TaskFile, FILE_FORMAT};
+use dir::{open_dir, OpenedDir};
+use entry::Entry;
+use files::{dir_name, err, fsync_dir, write_atomic};
+use snapshot::write_pool_file;
 use writer::{Change, ClientEnds, Log, PoolChange, Queue, Stats};
 
 const CREATING: &str = ".creating-";
 const DELETING: &str = ".deleting-";
 const LOG_FILE: &str = "commits.log";
-
-/// A task the store holds: its directory, its latest committed pool and counters, and
-/// what its snapshot on disk holds.
-#[derive(Debug, Clone)]
-struct Entry {
-    dir: PathBuf,
-    pool: Arc<Pool>,
-    counters: Counters,
-    /// The pool version of the snapshot (`pool.json`).
-    snap_version: u64,
-    /// The counters `pool.json` holds.
-    snap_counters: Counters,
-    /// The seqs `pool.json` lists (their trajectory files exist).
-    snap_seqs: Vec<u64>,
-    /// The episode ends committed per client (SPEC §9): `ends.json` and the log's
-    /// kind-2 records, so that a restarted server does not commit a re-sent end again.
-    ends: EndedEpisodes,
-    /// Merges into `ends` so far, and how many of them `ends.json` holds.
-    ends_gen: u64,
-    ends_saved: u64,
-}
-
-impl Entry {
-    /// A task whose snapshot is `pool` and `ends`.
-    fn new(
-        dir: PathBuf,
-        pool: Arc<Pool>,
-        counters: Counters,
-        snap_seqs: Vec<u64>,
-        ends: EndedEpisodes,
-    ) -> Entry {
-        Entry {
-            dir,
-            snap_version: pool.version(),
-            snap_counters: counters,
-            pool,
-            counters,
-            snap_seqs,
-            ends,
-            ends_gen: 0,
-            ends_saved: 0,
-        }
-    }
-
-    /// The log holds changes its snapshot lacks.
-    fn is_dirty(&self) -> bool {
-        self.pool.version() != self.snap_version || self.ends_gen != self.ends_saved
-    }
-
-    /// Records episode ends, per client (env, episodes ended).
-    fn merge_ends(&mut self, ends: &ClientEnds) {
-        for (client, counts) in ends {
-            self.ends.merge(client, counts.iter().copied());
-        }
-        if !ends.is_empty() {
-            self.ends_gen += 1;
-        }
-    }
-
-    /// What its snapshot lacks.
-    fn dirty_parts(&self) -> DirtyParts {
-        DirtyParts {
-            dir: self.dir.clone(),
-            pool: (self.pool.version() != self.snap_version)
-                .then(|| (self.pool.clone(), self.counters, self.snap_seqs.clone())),
-            ends: (self.ends_gen != self.ends_saved).then(|| (self.ends.clone(), self.ends_gen)),
-        }
-    }
-
-    fn snapshot_written(&mut self, version: u64, seqs: Vec<u64>, counters: Counters) {
-        self.snap_version = version;
-        self.snap_counters = counters;
-        self.snap_seqs = seqs;
-    }
-}
-
-/// What one task's snapshot lacks: its pool (newer than `pool.json`: the pool, counters
-/// and the seqs `pool.json` lists) and its ended episodes (newer than `ends.json`).
-struct DirtyParts {
-    dir: PathBuf,
-    pool: Option<(Arc<Pool>, Counters, Vec<u64>)>,
-    ends: Option<(EndedEpisodes, u64)>,
-}
-
-impl DirtyParts {
-    /// Writes them, and notes in the task's entry what its snapshot now holds.
-    fn write(self, shared: &Shared, id: &str) -> Result<(), StoreError> {
-        let syncs = &shared.stats.syncs;
-        if let Some((pool, counters, listed)) = self.pool {
-            let seqs = write_snapshot(&self.dir, &pool, counters, &listed, syncs)?;
-            if let Some(e) = shared.tasks.lock().get_mut(id) {
-                e.snapshot_written(pool.version(), seqs, counters);
-            }
-        }
-        if let Some((ends, generation)) = self.ends {
-            write_ends_file(&self.dir, &ends, syncs)?;
-            if let Some(e) = shared.tasks.lock().get_mut(id) {
-                e.ends_saved = generation;
-            }
-        }
-        Ok(())
-    }
-}
 
 /// State shared by the store's handles and its writer thread.
 struct Shared {
@@ -220,38 +122,6 @@ pub struct CommitStats {
     pub compactions: u64,
 }
 
-/// Takes the data dir's lock, or explains who holds it.
-fn lock_data_dir(root: &Path) -> Result<fs::File, StoreError> {
-    let path = root.join("LOCK");
-    let file = fs::OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .map_err(|e| err(&path, format!("open: {e}")))?;
-    // A lock belongs to the open file description, which a process forked by another
-    // thread of this one shares until it execs: a lock just released can look held for
-    // a moment. Only a lock still held after `LOCK_PATIENCE` is another user's.
-    let deadline = std::time::Instant::now() + LOCK_PATIENCE;
-    loop {
-        match file.try_lock() {
-            Ok(()) => return Ok(file),
-            Err(fs::TryLockError::WouldBlock) if std::time::Instant::now() < deadline => {
-                std::thread::sleep(std::time::Duration::from_millis(5))
-            }
-            Err(fs::TryLockError::WouldBlock) => return Err(err(
-                root,
-                "the data dir is in use by another tamrm process (its LOCK file is held); stop that process or use another data dir",
-            )),
-            Err(fs::TryLockError::Error(e)) => return Err(err(&path, format!("lock: {e}"))),
-        }
-    }
-}
-
-/// How long [`lock_data_dir`] waits for a held lock before it reports the data dir as in
-/// use.
-const LOCK_PATIENCE: std::time::Duration = std::time::Duration::from_millis(500);
-
 fn checked<T>(path: &Path, r: Result<T, String>) -> Result<T, StoreError> {
     r.map_err(|m| err(path, m))
 }
@@ -272,49 +142,13 @@ impl DiskStore {
         log_limit: u64,
     ) -> Result<DiskStore, StoreError> {
         let root = root.into();
-        let tasks = root.join("tasks");
-        fs::create_dir_all(&tasks).map_err(|e| err(&tasks, format!("create: {e}")))?;
-        let lock = lock_data_dir(&root)?;
-        remove_tmp_files(&root)?;
         let stats = Stats::default();
-        let marker = root.join("tamrm.json");
-        let found = if marker.exists() {
-            let f: RootFile = read_json(&marker)?;
-            checked(&marker, check_root_format(f.format))?;
-            Some(f.format)
-        } else {
-            None
-        };
-        let log_path = root.join(LOG_FILE);
-        if !log_path.exists() {
-            if found == Some(FORMAT_VERSION) {
-                return Err(err(
-                    &log_path,
-                    "missing: a format-2 data dir keeps the pool changes since the last snapshots in it; restore it, or move the data dir aside",
-                ));
-            }
-            // Created before the marker names format 2, so a format-2 dir always has one.
-            write_atomic(&log_path, &log::header(), &stats.syncs)?;
-        }
-        if found != Some(FORMAT_VERSION) {
-            let bytes = serde_json::to_vec(&RootFile {
-                format: FORMAT_VERSION,
-            })
-            .map_err(|e| err(&marker, e))?;
-            write_atomic(&marker, &bytes, &stats.syncs)?;
-            if found == Some(FORMAT_V1) {
-                tracing::info!(dir = %root.display(), "migrated the data dir from format 1 to format 2 (an empty commit log added)");
-            }
-        }
-        let file = fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .open(&log_path)
-            .map_err(|e| err(&log_path, format!("open: {e}")))?;
-        let len = file
-            .metadata()
-            .map_err(|e| err(&log_path, format!("stat: {e}")))?
-            .len();
+        let OpenedDir {
+            lock,
+            log_file: file,
+            log_path,
+            log_len: len,
+        } = open_dir(&root, &stats)?;
         let shared = Arc::new(Shared {
             root,
             log_path: log_path.clone(),

@@ -1,3 +1,4 @@
+use super::frames::PREFIX;
 use super::*;
 
 #[test]
