@@ -534,10 +534,6 @@ fn the_python_extension_uses_public_seams_not_the_servers_internals() {
     );
 }
 
-/// Files whose inline tests move to their own file when their owner next changes them
-/// (the one style below; nothing else may join this list).
-const INLINE_TESTS_PENDING: [&str; 1] = ["core/pool.rs"];
-
 /// Where a test module declared in `file` (`mod name;`) lives: Rust's default path.
 fn test_module_file(file: &Path, name: &str) -> PathBuf {
     let dir = file.parent().unwrap();
@@ -579,9 +575,6 @@ fn unit_tests_live_in_a_file_of_their_own() {
             else {
                 continue;
             };
-            if decl.ends_with('{') && INLINE_TESTS_PENDING.contains(&rel.as_str()) {
-                continue;
-            }
             let name = decl.strip_suffix(';').unwrap_or_else(|| {
                 panic!(
                     "{at}: `{item}`: move the test module into a file of its own (`mod {};`)",
@@ -608,7 +601,7 @@ fn unit_tests_live_in_a_file_of_their_own() {
 const LONG_FILE: usize = 500;
 
 /// Long files their owners are changing now; they split or give their reason next.
-const LONG_FILES_PENDING: [&str; 2] = ["core/pool.rs", "registry/task.rs"];
+const LONG_FILES_PENDING: [&str; 1] = ["registry/task.rs"];
 
 #[test]
 fn a_long_source_file_says_why_it_is_one_file() {
