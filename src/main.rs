@@ -75,14 +75,21 @@ fn healthcheck(args: &HealthcheckArgs) -> std::process::ExitCode {
         }
     };
     let timeout = std::time::Duration::from_secs(args.timeout_secs);
-    let tls = match args.tls.client_config() {
+    let target = match args.resolve() {
+        Ok(t) => t,
+        Err(e) => {
+            eprintln!("unhealthy: the server's settings: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let tls = match target.tls.client_config(&target.server_tls) {
         Ok(t) => t,
         Err(e) => {
             eprintln!("unhealthy: {e}");
             return std::process::ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(tamrm::server::healthcheck(args.target(), tls, timeout)) {
+    match runtime.block_on(tamrm::server::healthcheck(target.addr, tls, timeout)) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("unhealthy: {e}");

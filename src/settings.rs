@@ -9,6 +9,7 @@ use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
 use crate::net::tls::{HealthcheckTls, TlsFiles};
+use crate::store::RedisTls;
 
 /// Default listen address.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
@@ -50,11 +51,17 @@ pub struct KeyArgs {
     pub stdin: bool,
 }
 
-/// Flags of `tamrm healthcheck`.
+/// Flags of `tamrm healthcheck`. It reads the server's own settings as `tamrm serve`
+/// does (the config file, then `TAMRM_*` variables) to find the server's address and
+/// TLS; its flags win over both.
 #[derive(Debug, Clone, Args)]
 pub struct HealthcheckArgs {
-    /// The server, `host:port` [default: the port of TAMRM_LISTEN on 127.0.0.1, else
-    /// 127.0.0.1:50051].
+    /// The server's TOML config file, as given to `tamrm serve` (its `listen`, `[tls]`
+    /// and `[healthcheck]` are used).
+    #[arg(long, env = "TAMRM_CONFIG", value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// The server, `host:port` [default: the port the server's settings listen on, on
+    /// loopback: 127.0.0.1:50051 unless --config or TAMRM_LISTEN say otherwise].
     #[arg(long, value_name = "ADDR", value_parser = parse_addr)]
     pub addr: Option<SocketAddr>,
     /// Seconds to wait for the answer.
@@ -65,28 +72,58 @@ pub struct HealthcheckArgs {
     pub tls: HealthcheckTls,
 }
 
+/// What `tamrm healthcheck` checks: the address and the TLS towards it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HealthcheckTarget {
+    /// The server's address.
+    pub addr: SocketAddr,
+    /// The healthcheck's own TLS settings (file < environment < flags).
+    pub tls: HealthcheckTls,
+    /// The server's TLS files, as its settings resolve them (the default CA).
+    pub server_tls: TlsFiles,
+}
+
 impl HealthcheckArgs {
-    /// The address to check: `--addr`, else where `TAMRM_LISTEN` says the server listens
-    /// (an unspecified address such as 0.0.0.0 becomes loopback), else the default.
-    pub fn target(&self) -> SocketAddr {
-        if let Some(a) = self.addr {
-            return a;
+    /// Resolves the server's settings as `tamrm serve` would with this config file (or
+    /// `TAMRM_CONFIG`) and the `TAMRM_*` variables, and overlays this command's flags:
+    /// the address to check (`--addr`, else where the server listens, an unspecified
+    /// address such as 0.0.0.0 becoming loopback) and the TLS to speak.
+    pub fn resolve(&self) -> Result<HealthcheckTarget, SettingsError> {
+        use clap::FromArgMatches;
+        let matches = ServeArgs::augment_args(clap::Command::new("serve"))
+            .try_get_matches_from(["serve"])
+            .map_err(|e| SettingsError(format!("the server's environment: {e}")))?;
+        let mut serve = ServeArgs::from_arg_matches(&matches)
+            .map_err(|e| SettingsError(format!("the server's environment: {e}")))?;
+        if self.config.is_some() {
+            serve.config.clone_from(&self.config);
         }
-        let listen = std::env::var("TAMRM_LISTEN")
-            .ok()
-            .and_then(|s| parse_addr(&s).ok())
-            .unwrap_or_else(|| Settings::default().listen);
-        if listen.ip().is_unspecified() {
-            let ip = if listen.is_ipv4() {
-                std::net::Ipv4Addr::LOCALHOST.into()
-            } else {
-                std::net::Ipv6Addr::LOCALHOST.into()
-            };
-            SocketAddr::new(ip, listen.port())
-        } else {
-            listen
-        }
+        let mut tls = match &serve.config {
+            Some(path) => read_file(path)?.healthcheck.unwrap_or_default(),
+            None => HealthcheckTls::default(),
+        };
+        tls.apply(&self.tls);
+        let settings = Settings::layered(&serve)?;
+        Ok(HealthcheckTarget {
+            addr: self.addr.unwrap_or_else(|| loopback(settings.listen)),
+            tls,
+            server_tls: settings.tls,
+        })
     }
+}
+
+/// `listen` as a client reaches it on this machine: an unspecified address (0.0.0.0, ::)
+/// becomes loopback.
+fn loopback(listen: SocketAddr) -> SocketAddr {
+    if !listen.ip().is_unspecified() {
+        return listen;
+    }
+    let ip = if listen.is_ipv4() {
+        std::net::Ipv4Addr::LOCALHOST.into()
+    } else {
+        std::net::Ipv6Addr::LOCALHOST.into()
+    };
+    SocketAddr::new(ip, listen.port())
 }
 
 /// Flags of `tamrm serve`. Each can also be set by the environment variable shown, or by
@@ -108,14 +145,26 @@ pub struct ServeArgs {
     pub port_file: Option<PathBuf>,
     /// Keep tasks and pools in Redis, shared with every server given the same URL:
     /// `redis://[[USER]:PASSWORD@]HOST:PORT[/DB]`, or a Redis Cluster by its seed nodes:
-    /// `redis-cluster://[[USER]:PASSWORD@]HOST:PORT[,HOST:PORT...]` (see docs/scaling.md).
-    /// Excludes --data-dir.
+    /// `redis-cluster://[[USER]:PASSWORD@]HOST:PORT[,HOST:PORT...]` (see docs/scaling.md);
+    /// `rediss://` and `rediss-cluster://` over TLS (see --store-tls-ca). Excludes
+    /// --data-dir.
     #[arg(long, env = "TAMRM_STORE", value_name = "URL")]
     pub store: Option<String>,
     /// With --store: how often every task's pool version is polled, in milliseconds, as
     /// a backstop for lost notifications (the staleness bound) [default: 1000].
     #[arg(long, env = "TAMRM_STORE_POLL_MS", value_name = "MS")]
     pub store_poll_ms: Option<u64>,
+    /// With a `rediss://` or `rediss-cluster://` store: PEM CA certificate(s) to verify
+    /// Redis with [default: the system's roots].
+    #[arg(long, env = "TAMRM_STORE_TLS_CA", value_name = "FILE")]
+    pub store_tls_ca: Option<PathBuf>,
+    /// With a `rediss://` store: PEM client certificate to present to Redis (needs
+    /// --store-tls-key) [default: none].
+    #[arg(long, env = "TAMRM_STORE_TLS_CERT", value_name = "FILE")]
+    pub store_tls_cert: Option<PathBuf>,
+    /// The private key of --store-tls-cert.
+    #[arg(long, env = "TAMRM_STORE_TLS_KEY", value_name = "FILE")]
+    pub store_tls_key: Option<PathBuf>,
     /// Server limits (each also `TAMRM_<NAME>` and `[limits] <name>` in the file).
     #[command(flatten)]
     pub limits: LimitsLayer,
@@ -153,10 +202,17 @@ pub struct FileSettings {
     pub data_dir: Option<PathBuf>,
     /// Port file.
     pub port_file: Option<PathBuf>,
-    /// Shared store URL (`redis://...` or `redis-cluster://...`).
+    /// Shared store URL (`redis://`, `rediss://`, `redis-cluster://` or
+    /// `rediss-cluster://`).
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: Option<u64>,
+    /// CA file to verify a `rediss://` store with.
+    pub store_tls_ca: Option<PathBuf>,
+    /// Client certificate for a `rediss://` store.
+    pub store_tls_cert: Option<PathBuf>,
+    /// Its private key.
+    pub store_tls_key: Option<PathBuf>,
     /// Shutdown grace period, seconds.
     pub shutdown_grace_secs: Option<u64>,
     /// Limits (any subset).
@@ -165,6 +221,8 @@ pub struct FileSettings {
     pub api_keys: Option<PathBuf>,
     /// TLS files (any subset).
     pub tls: Option<TlsFiles>,
+    /// `tamrm healthcheck`'s TLS settings (any subset); `tamrm serve` ignores them.
+    pub healthcheck: Option<HealthcheckTls>,
     /// Metrics address (`host:port`).
     #[serde(default, deserialize_with = "deserialize_addr")]
     pub metrics_listen: Option<SocketAddr>,
@@ -185,6 +243,8 @@ pub struct Settings {
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: u64,
+    /// TLS files for a `rediss://` store.
+    pub store_tls: RedisTls,
     /// Server limits.
     pub limits: Limits,
     /// Shutdown grace period, seconds.
@@ -210,6 +270,7 @@ impl Default for Settings {
             port_file: None,
             store: None,
             store_poll_ms: 1000,
+            store_tls: RedisTls::default(),
             limits: Limits::default(),
             shutdown_grace_secs: 30,
             api_keys: None,
@@ -229,11 +290,7 @@ impl Settings {
     /// Defaults, overlaid by the config file (if `args.config` names one), overlaid by the
     /// flags/environment in `args` (clap already gives flags precedence over environment).
     pub fn resolve(args: &ServeArgs) -> Result<Settings, SettingsError> {
-        let mut s = Settings::default();
-        if let Some(path) = &args.config {
-            s.apply_file(&read_file(path)?);
-        }
-        s.apply_args(args);
+        let s = Settings::layered(args)?;
         s.tls.check().map_err(SettingsError)?;
         if let Some(url) = &s.store {
             if s.data_dir.is_some() {
@@ -241,8 +298,13 @@ impl Settings {
                     "store and data_dir exclude each other: tasks live either in Redis (--store) or in a data dir (--data-dir)".into(),
                 ));
             }
-            crate::store::RedisTarget::parse(url)
+            let target = crate::store::RedisTarget::parse(url)
                 .map_err(|e| SettingsError(format!("store: {e}")))?;
+            s.store_tls.check(target.tls()).map_err(SettingsError)?;
+        } else if !s.store_tls.is_empty() {
+            return Err(SettingsError(
+                "store_tls_ca, store_tls_cert and store_tls_key need a rediss:// or rediss-cluster:// store (--store)".into(),
+            ));
         }
         if let Some(n) = s.worker_threads {
             if !(1..=MAX_WORKER_THREADS).contains(&n) {
@@ -263,6 +325,18 @@ impl Settings {
         Ok(s)
     }
 
+    /// The layers without the checks of [`Settings::resolve`]: what `tamrm healthcheck`
+    /// reads (it needs the address and the certificate, and must not fail on a setting
+    /// that only the server uses).
+    fn layered(args: &ServeArgs) -> Result<Settings, SettingsError> {
+        let mut s = Settings::default();
+        if let Some(path) = &args.config {
+            s.apply_file(&read_file(path)?);
+        }
+        s.apply_args(args);
+        Ok(s)
+    }
+
     fn apply_file(&mut self, f: &FileSettings) {
         set(&mut self.listen, f.listen);
         if f.data_dir.is_some() {
@@ -275,6 +349,11 @@ impl Settings {
             self.store.clone_from(&f.store);
         }
         set(&mut self.store_poll_ms, f.store_poll_ms);
+        self.store_tls.apply(&RedisTls {
+            ca: f.store_tls_ca.clone(),
+            cert: f.store_tls_cert.clone(),
+            key: f.store_tls_key.clone(),
+        });
         set(&mut self.shutdown_grace_secs, f.shutdown_grace_secs);
         if f.api_keys.is_some() {
             self.api_keys.clone_from(&f.api_keys);
@@ -301,6 +380,11 @@ impl Settings {
             self.store.clone_from(&a.store);
         }
         set(&mut self.store_poll_ms, a.store_poll_ms);
+        self.store_tls.apply(&RedisTls {
+            ca: a.store_tls_ca.clone(),
+            cert: a.store_tls_cert.clone(),
+            key: a.store_tls_key.clone(),
+        });
         set(&mut self.shutdown_grace_secs, a.shutdown_grace_secs);
         if a.api_keys.is_some() {
             self.api_keys.clone_from(&a.api_keys);

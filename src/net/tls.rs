@@ -45,18 +45,24 @@ pub struct TlsFiles {
     pub client_ca: Option<PathBuf>,
 }
 
+/// Sets each slot to its value where the value is set: one settings layer over the one
+/// below it.
+pub fn overlay<T: Clone, const N: usize>(pairs: [(&mut Option<T>, &Option<T>); N]) {
+    for (slot, value) in pairs {
+        if value.is_some() {
+            slot.clone_from(value);
+        }
+    }
+}
+
 impl TlsFiles {
     /// Overlays the files `other` sets.
     pub fn apply(&mut self, other: &TlsFiles) {
-        for (slot, value) in [
+        overlay([
             (&mut self.cert, &other.cert),
             (&mut self.key, &other.key),
             (&mut self.client_ca, &other.client_ca),
-        ] {
-            if value.is_some() {
-                slot.clone_from(value);
-            }
-        }
+        ]);
     }
 
     /// Whether the server is to speak TLS.
@@ -108,8 +114,8 @@ fn read(what: &'static str, file: &Path) -> Result<Vec<u8>, TlsError> {
     })
 }
 
-/// Reads a PEM file that must hold at least one certificate.
-fn read_certs(what: &'static str, file: &Path) -> Result<Vec<u8>, TlsError> {
+/// Reads a PEM file that must hold at least one certificate; `what` names it in errors.
+pub fn read_certs(what: &'static str, file: &Path) -> Result<Vec<u8>, TlsError> {
     let pem = read(what, file)?;
     let bad = |problem: String| TlsError {
         what,
@@ -127,9 +133,8 @@ fn read_certs(what: &'static str, file: &Path) -> Result<Vec<u8>, TlsError> {
     Ok(pem)
 }
 
-/// Reads a PEM file that must hold a private key.
-fn read_key(file: &Path) -> Result<Vec<u8>, TlsError> {
-    let what = "TLS key";
+/// Reads a PEM file that must hold a private key; `what` names it in errors.
+pub fn read_key(what: &'static str, file: &Path) -> Result<Vec<u8>, TlsError> {
     let pem = read(what, file)?;
     PrivateKeyDer::from_pem_slice(&pem).map_err(|e| TlsError {
         what,
@@ -146,7 +151,7 @@ pub fn server_config(files: &TlsFiles) -> Result<Option<ServerTlsConfig>, TlsErr
         return Ok(None);
     };
     let cert = read_certs("TLS certificate", cert_file)?;
-    let key = read_key(key_file)?;
+    let key = read_key("TLS key", key_file)?;
     let mut config = ServerTlsConfig::new()
         .identity(Identity::from_pem(cert, key))
         .timeout(HANDSHAKE_TIMEOUT);
@@ -169,13 +174,16 @@ pub fn server_config(files: &TlsFiles) -> Result<Option<ServerTlsConfig>, TlsErr
     Ok(Some(config))
 }
 
-/// TLS flags of `tamrm healthcheck`. TLS is on when a CA is given, or when
-/// `TAMRM_TLS_CERT` is set (the server's own setting, in a container's environment).
-#[derive(Debug, Clone, Default, Args)]
+/// TLS settings of `tamrm healthcheck`: flags, `TAMRM_TLS_*` variables and the config
+/// file's `[healthcheck]` table (`tls_ca`, `tls_server_name`, `tls_client_cert`,
+/// `tls_client_key`). TLS is on when a CA is given, or when the server's own settings
+/// (the same config file and environment) give it a certificate.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Args, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct HealthcheckTls {
-    /// PEM CA certificate(s) to verify the server with; turns TLS on [default: when
-    /// TAMRM_TLS_CERT is set, that file: right for a self-signed certificate or a file
-    /// that holds its CA].
+    /// PEM CA certificate(s) to verify the server with; turns TLS on [default: the
+    /// server's own certificate file (--config's `[tls] cert`, TAMRM_TLS_CERT): right for
+    /// a self-signed certificate or a file that holds its CA].
     #[arg(long, env = "TAMRM_TLS_CA", value_name = "FILE")]
     pub tls_ca: Option<PathBuf>,
     /// The name the server's certificate must be valid for [default: localhost].
@@ -190,12 +198,23 @@ pub struct HealthcheckTls {
 }
 
 impl HealthcheckTls {
-    /// The client TLS configuration to check with, `None` for plaintext.
-    pub fn client_config(&self) -> Result<Option<ClientTlsConfig>, TlsError> {
+    /// Overlays the settings `other` sets.
+    pub fn apply(&mut self, other: &HealthcheckTls) {
+        overlay([
+            (&mut self.tls_ca, &other.tls_ca),
+            (&mut self.tls_client_cert, &other.tls_client_cert),
+            (&mut self.tls_client_key, &other.tls_client_key),
+        ]);
+        overlay([(&mut self.tls_server_name, &other.tls_server_name)]);
+    }
+
+    /// The client TLS configuration to check a server whose TLS files are `server` (as
+    /// its settings resolve them) with, `None` for plaintext.
+    pub fn client_config(&self, server: &TlsFiles) -> Result<Option<ClientTlsConfig>, TlsError> {
         let ca = self
             .tls_ca
             .clone()
-            .or_else(|| std::env::var_os("TAMRM_TLS_CERT").map(PathBuf::from))
+            .or_else(|| server.cert.clone())
             .filter(|p| !p.as_os_str().is_empty());
         let Some(ca) = ca else {
             return Ok(None);
@@ -211,7 +230,8 @@ impl HealthcheckTls {
         match (&self.tls_client_cert, &self.tls_client_key) {
             (Some(cert), Some(key)) => {
                 let cert = read_certs("TLS client certificate", cert)?;
-                config = config.identity(Identity::from_pem(cert, read_key(key)?));
+                config =
+                    config.identity(Identity::from_pem(cert, read_key("TLS client key", key)?));
             }
             (None, None) => {}
             (Some(f), None) | (None, Some(f)) => {

@@ -115,6 +115,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         (Some(url), _) => {
             let mut options = RedisOptions::new(url.as_str());
             options.poll_interval = Duration::from_millis(settings.store_poll_ms);
+            options.tls = settings.store_tls.clone();
             Arc::new(RedisStore::open(&options).await?)
         }
         (None, Some(dir)) => Arc::new(DiskStore::open(dir)?),

@@ -17,14 +17,36 @@ fn the_store_url_is_checked() {
     let s = Settings::resolve(&parse(&["--store", "redis://h:6379/2"])).unwrap();
     assert_eq!(s.store.as_deref(), Some("redis://h:6379/2"));
     assert!(err(&["--store", "redis://h:1", "--data-dir", "/d"]).contains("exclude"));
-    assert!(err(&["--store", "rediss://h:1"]).contains("not supported"));
+    let s = Settings::resolve(&parse(&["--store", "rediss://h:6380"])).unwrap();
+    assert_eq!(s.store_tls, RedisTls::default(), "the system's roots");
     let bad = err(&["--store", "http://:secret@h:1"]);
     assert!(bad.contains("redis://") && !bad.contains("secret"), "{bad}");
     assert!(err(&["--store", "redis://h:1", "--store-poll-ms", "0"]).contains("store_poll_ms"));
     let cluster = "redis-cluster://:pw@a:7000,b:7001";
     let s = Settings::resolve(&parse(&["--store", cluster])).unwrap();
     assert_eq!(s.store.as_deref(), Some(cluster));
-    assert!(err(&["--store", "rediss-cluster://a:1"]).contains("not supported"));
+    // TLS files for Redis: with a rediss URL only, a certificate with its key.
+    let tls = ["--store-tls-ca", "/ca.pem", "--store-tls-cert", "/c.pem"];
+    let s = Settings::resolve(&parse(
+        &[
+            &["--store", "rediss-cluster://a:1,b:2"][..],
+            &tls,
+            &["--store-tls-key", "/k.pem"],
+        ]
+        .concat(),
+    ))
+    .unwrap();
+    assert_eq!(
+        s.store_tls,
+        RedisTls {
+            ca: Some("/ca.pem".into()),
+            cert: Some("/c.pem".into()),
+            key: Some("/k.pem".into())
+        }
+    );
+    assert!(err(&[&["--store", "rediss://h:1"][..], &tls].concat()).contains("store_tls_key"));
+    assert!(err(&[&["--store", "redis://h:1"][..], &tls[..2]].concat()).contains("rediss://"));
+    assert!(err(&tls[..2]).contains("need a rediss://"));
     let bad = err(&["--store", "redis-cluster://:secret@a:7000,b"]);
     assert!(
         bad.contains("HOST:PORT") && !bad.contains("secret"),
@@ -139,4 +161,38 @@ fn defaults_then_file_then_env_then_flags() {
     std::fs::write(&file, "listn = \"x\"\n").unwrap();
     let e = Settings::resolve(&parse(&["--config", file_arg])).unwrap_err();
     assert!(e.to_string().contains("listn"), "{e}");
+
+    // `tamrm healthcheck` reads the same layers: the file's listen (an unspecified
+    // address as loopback) and [tls], its own [healthcheck] table, then env, then flags.
+    std::fs::write(
+        &file,
+        "listen = \"0.0.0.0:7003\"\n[tls]\ncert = \"/f/c.pem\"\nkey = \"/f/k.pem\"\n\
+         [healthcheck]\ntls_server_name = \"file-name\"\ntls_ca = \"/f/ca.pem\"\n",
+    )
+    .unwrap();
+    let check = |args: &[&str]| {
+        let full = [&["tamrm", "healthcheck"][..], args].concat();
+        match Cli::try_parse_from(full).unwrap().command {
+            Command::Healthcheck(h) => h.resolve(),
+            _ => unreachable!("parsed a healthcheck command"),
+        }
+    };
+    let t = check(&["--config", file_arg]).unwrap();
+    assert_eq!(t.addr, "127.0.0.1:7003".parse().unwrap());
+    assert_eq!(t.server_tls.cert.as_deref(), Some(Path::new("/f/c.pem")));
+    assert_eq!(t.tls.tls_server_name.as_deref(), Some("file-name"));
+    assert_eq!(t.tls.tls_ca.as_deref(), Some(Path::new("/f/ca.pem")));
+    std::env::set_var("TAMRM_LISTEN", "127.0.0.1:7004");
+    std::env::set_var("TAMRM_TLS_SERVER_NAME", "env-name");
+    let t = check(&["--config", file_arg, "--tls-ca", "/flag/ca.pem"]).unwrap();
+    assert_eq!(t.addr.port(), 7004, "env beats file");
+    assert_eq!(t.tls.tls_server_name.as_deref(), Some("env-name"));
+    assert_eq!(t.tls.tls_ca.as_deref(), Some(Path::new("/flag/ca.pem")));
+    let t = check(&["--config", file_arg, "--addr", "127.0.0.1:7005"]).unwrap();
+    assert_eq!(t.addr.port(), 7005, "flags beat env");
+    std::env::remove_var("TAMRM_LISTEN");
+    std::env::remove_var("TAMRM_TLS_SERVER_NAME");
+    std::fs::write(&file, "[healthcheck]\ntls_cert = \"x\"\n").unwrap();
+    let e = check(&["--config", file_arg]).unwrap_err();
+    assert!(e.to_string().contains("tls_cert"), "{e}");
 }

@@ -36,7 +36,7 @@ pub use disk::{DiskStore, FORMAT_VERSION};
 pub use ends::{EndedEpisodes, MAX_REMEMBERED_CLIENTS};
 pub use error::StoreError;
 pub use memory::MemoryStore;
-pub use redis::{RedisOptions, RedisStore, RedisTarget};
+pub use redis::{RedisOptions, RedisStore, RedisTarget, RedisTls};
 
 /// Per-task counters kept alongside the pool (persisted with every pool change and at
 /// graceful shutdown; a crash may lose the increments since the last write).

@@ -488,13 +488,17 @@ pub struct Binary {
 }
 
 impl Binary {
+    /// `tamrm serve --listen 127.0.0.1:0 ARGS`.
     pub fn start(args: &[&str]) -> Binary {
+        Binary::start_listening_as_told(&[&["--listen", "127.0.0.1:0"][..], args].concat())
+    }
+
+    /// `tamrm serve ARGS`, listening where the arguments (or a config file) say.
+    pub fn start_listening_as_told(args: &[&str]) -> Binary {
         let dir = tempfile::tempdir().unwrap();
         let port_file = dir.path().join("port");
         let child = Command::new(env!("CARGO_BIN_EXE_tamrm"))
             .arg("serve")
-            .arg("--listen")
-            .arg("127.0.0.1:0")
             .arg("--port-file")
             .arg(&port_file)
             .args(args)

@@ -14,6 +14,7 @@ mod group_commit;
 mod metrics;
 mod redis;
 mod redis_pool_rule;
+mod redis_tls;
 mod server;
 mod tls;
 mod undecodable;

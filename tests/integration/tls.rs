@@ -19,18 +19,18 @@ use tamrm::proto::shaping_client::ShapingClient;
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 
 /// A certificate authority made for one test.
-struct Ca {
+pub(crate) struct Ca {
     issuer: CertifiedIssuer<'static, KeyPair>,
 }
 
 /// A PEM certificate (with its chain) and its key.
-struct Pem {
-    cert: String,
-    key: String,
+pub(crate) struct Pem {
+    pub(crate) cert: String,
+    pub(crate) key: String,
 }
 
 impl Ca {
-    fn new(name: &str) -> Ca {
+    pub(crate) fn new(name: &str) -> Ca {
         let mut params = CertificateParams::new(Vec::<String>::new()).unwrap();
         params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
         params.distinguished_name.push(DnType::CommonName, name);
@@ -38,15 +38,21 @@ impl Ca {
         Ca { issuer }
     }
 
-    fn pem(&self) -> String {
+    pub(crate) fn pem(&self) -> String {
         self.issuer.pem()
     }
 
     /// A leaf for `names`, its file holding the leaf then this CA (a full chain).
     fn issue(&self, names: &[&str], usage: ExtendedKeyUsagePurpose) -> Pem {
+        self.issue_for(names, vec![usage])
+    }
+
+    /// A leaf for `names` good for each of `usages` (a Redis Cluster node's certificate
+    /// is both a server's and, towards the other nodes, a client's).
+    pub(crate) fn issue_for(&self, names: &[&str], usages: Vec<ExtendedKeyUsagePurpose>) -> Pem {
         let names: Vec<String> = names.iter().map(|s| s.to_string()).collect();
         let mut params = CertificateParams::new(names).unwrap();
-        params.extended_key_usages = vec![usage];
+        params.extended_key_usages = usages;
         let key = KeyPair::generate().unwrap();
         let cert = params.signed_by(&key, &self.issuer).unwrap();
         Pem {
@@ -55,19 +61,19 @@ impl Ca {
         }
     }
 
-    fn server(&self) -> Pem {
+    pub(crate) fn server(&self) -> Pem {
         self.issue(
             &["localhost", "127.0.0.1"],
             ExtendedKeyUsagePurpose::ServerAuth,
         )
     }
 
-    fn client(&self) -> Pem {
+    pub(crate) fn client(&self) -> Pem {
         self.issue(&["trainer"], ExtendedKeyUsagePurpose::ClientAuth)
     }
 }
 
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+pub(crate) fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let path = dir.join(name);
     std::fs::write(&path, text).unwrap();
     path
@@ -212,8 +218,11 @@ fn healthcheck(args: &[&str], envs: &[(&str, &Path)]) -> (bool, String) {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_tamrm"));
     cmd.arg("healthcheck").args(args);
     for var in [
+        "TAMRM_CONFIG",
         "TAMRM_LISTEN",
         "TAMRM_TLS_CERT",
+        "TAMRM_TLS_KEY",
+        "TAMRM_TLS_CLIENT_CA",
         "TAMRM_TLS_CA",
         "TAMRM_TLS_SERVER_NAME",
         "TAMRM_TLS_CLIENT_CERT",
@@ -280,6 +289,78 @@ async fn healthcheck_speaks_tls_with_the_servers_certificate_file_as_ca() {
     }
     assert!(results[2].1.contains("certificate"), "{}", results[2].1);
     server.shutdown().await;
+}
+
+/// A port nobody listens on now.
+pub(crate) fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// `tamrm healthcheck --config FILE` reads the server's own config file, as `tamrm serve`
+/// does: the address it listens on and its `[tls]` certificate (the CA by default), with
+/// no other flag or variable; `TAMRM_CONFIG` does the same. A wrong CA, from a flag or the
+/// file's `[healthcheck]` table, fails; without the file it speaks plaintext and fails.
+#[tokio::test(flavor = "multi_thread")]
+async fn healthcheck_reads_the_servers_config_file_with_its_tls() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let pem = Ca::new("tamrm test CA").server();
+    let (cert, key) = (
+        write(d, "server.crt", &pem.cert),
+        write(d, "server.key", &pem.key),
+    );
+    let other = write(d, "other.crt", &Ca::new("other").pem());
+    let served = format!(
+        "listen = \"127.0.0.1:{}\"\n[tls]\ncert = \"{}\"\nkey = \"{}\"\n",
+        free_port(),
+        cert.display(),
+        key.display()
+    );
+    let config = write(d, "tamrm.toml", &served);
+    let wrong = format!("{served}[healthcheck]\ntls_ca = \"{}\"\n", other.display());
+    let wrong = write(d, "wrong-ca.toml", &wrong);
+    let server = tokio::task::spawn_blocking({
+        let config = config.clone();
+        move || Binary::start_listening_as_told(&["--config", config.to_str().unwrap()])
+    })
+    .await
+    .unwrap();
+    let addr = server.addr.to_string();
+    let results = tokio::task::spawn_blocking(move || {
+        let (c, w, o) = (
+            config.to_str().unwrap(),
+            wrong.to_str().unwrap(),
+            other.to_str().unwrap(),
+        );
+        [
+            healthcheck(&["--config", c], &[]),
+            healthcheck(&[], &[("TAMRM_CONFIG", Path::new(c))]),
+            healthcheck(&["--config", c, "--tls-ca", o], &[]),
+            healthcheck(&["--config", w], &[]),
+            healthcheck(&["--addr", &addr, "--timeout-secs", "5"], &[]),
+        ]
+    })
+    .await
+    .unwrap();
+    for (ok, err) in &results[..2] {
+        assert!(ok, "the healthcheck with the config file failed: {err}");
+    }
+    for (ok, err) in &results[2..] {
+        assert!(!ok && err.contains("unhealthy"), "{err}");
+        assert!(
+            !err.contains("no answer within"),
+            "hung instead of failing: {err}"
+        );
+    }
+    for (_, err) in &results[2..4] {
+        assert!(err.contains("certificate"), "{err}");
+    }
+    let (status, log) = server.terminate();
+    assert!(status.success(), "{log}");
 }
 
 /// `tamrm serve` with `args`: it must exit by itself within 20 s; (exit code, stderr).

@@ -7,6 +7,7 @@ use redis::aio::{ConnectionLike, ConnectionManager};
 use redis::cluster_async::ClusterConnection;
 use redis::{Cmd, Pipeline, RedisFuture, Value};
 
+use super::tls::RedisTls;
 use super::url::RedisTarget;
 use crate::store::StoreError;
 
@@ -46,21 +47,34 @@ impl ConnectionLike for Conn {
     }
 }
 
-/// Connects to the Redis of `url` (failing if it does not answer a `PING`): the
-/// connection, and a client per node to subscribe to notifications on (one for a single
-/// server, every seed node of a cluster). `what` names the store in errors.
+/// Connects to the Redis of `url` (failing if it does not answer a `PING`), over TLS
+/// with `tls`'s files for a `rediss://` URL: the connection, and a client per node to
+/// subscribe to notifications on (one for a single server, every seed node of a
+/// cluster). `what` names the store in errors.
 pub(super) async fn connect(
     what: &str,
     url: &str,
+    tls: &RedisTls,
 ) -> Result<(Conn, Vec<redis::Client>), StoreError> {
     let bad_url = |message: String| StoreError::Io {
         path: what.into(),
         message,
     };
-    let open_client =
-        |url: &str| redis::Client::open(url).map_err(|e| bad_url(format!("not a Redis URL: {e}")));
+    let target = RedisTarget::parse(url).map_err(bad_url)?;
+    tls.check(target.tls()).map_err(bad_url)?;
+    let certs = match target.tls() {
+        true => Some(tls.certificates().map_err(|e| bad_url(e.to_string()))?),
+        false => None,
+    };
+    let open_client = |url: &str| {
+        match &certs {
+            Some(c) => redis::Client::build_with_tls(url, c.clone()),
+            None => redis::Client::open(url),
+        }
+        .map_err(|e| bad_url(format!("not a Redis URL: {e}")))
+    };
     let (connect, timeout) = (Duration::from_secs(5), Duration::from_secs(10));
-    let (mut conn, subscribers) = match RedisTarget::parse(url).map_err(bad_url)? {
+    let (mut conn, subscribers) = match target {
         RedisTarget::Node(url) => {
             let client = open_client(&url)?;
             let config = redis::aio::ConnectionManagerConfig::new()
@@ -74,9 +88,13 @@ pub(super) async fn connect(
             (Conn::Node(conn), vec![client])
         }
         RedisTarget::Cluster(nodes) => {
-            let conn = redis::cluster::ClusterClientBuilder::new(nodes.clone())
+            let mut builder = redis::cluster::ClusterClientBuilder::new(nodes.clone())
                 .connection_timeout(connect)
-                .response_timeout(timeout)
+                .response_timeout(timeout);
+            if let Some(c) = &certs {
+                builder = builder.certs(c.clone());
+            }
+            let conn = builder
                 .build()
                 .map_err(|e| bad_url(format!("not a Redis Cluster URL: {e}")))?
                 .get_async_connection()

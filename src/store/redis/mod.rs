@@ -28,8 +28,12 @@
 //! are published with the classic `PUBLISH`, which a cluster delivers on every node, so a
 //! server subscribes on any one node (the next seed node when that one fails).
 //!
-//! The files, one job each: `url.rs` (the URL forms), `conn.rs` (the connection and its
-//! errors), `keys.rs` (the key layout), `scripts.rs` and `*.lua` (the atomic changes),
+//! TLS (`rediss://`, `rediss-cluster://`): every connection, to every node, speaks TLS,
+//! verified against the CA file of [`RedisTls`] (else the system's roots), with its client
+//! certificate if it has one.
+//!
+//! The files, one job each: `url.rs` (the URL forms), `tls.rs` (the TLS files), `conn.rs`
+//! (the connection and its errors), `keys.rs` (the key layout), `scripts.rs` and `*.lua` (the atomic changes),
 //! `codec.rs` (a task's hashes to and from the library's types), `store.rs` (the
 //! [`Store`](crate::store::Store) methods), `watch.rs` (following other servers).
 
@@ -38,10 +42,12 @@ mod conn;
 mod keys;
 mod scripts;
 mod store;
+mod tls;
 mod url;
 mod watch;
 
 pub use store::{RedisOptions, RedisStore};
+pub use tls::RedisTls;
 pub use url::RedisTarget;
 
 #[cfg(test)]

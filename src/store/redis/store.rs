@@ -14,6 +14,7 @@ use super::codec::{decode_task, encode_config, field, stored_config};
 use super::conn::{connect, unavailable, Conn};
 use super::keys::{Keys, CHANNEL, TASKS};
 use super::scripts::{CommitAnswer, CommitCall, Scripts};
+use super::tls::RedisTls;
 use super::url::redact;
 use super::watch::watch;
 use crate::core::{Pool, TaskConfig};
@@ -35,6 +36,9 @@ pub struct RedisOptions {
     pub poll_interval: Duration,
     /// How long the no-double-commit record of a client is kept after its last commit.
     pub ended_ttl: Duration,
+    /// TLS files for a `rediss://` or `rediss-cluster://` URL (none: the system's roots,
+    /// no client certificate).
+    pub tls: RedisTls,
 }
 
 impl RedisOptions {
@@ -44,6 +48,7 @@ impl RedisOptions {
             url: url.into(),
             poll_interval: Duration::from_secs(1),
             ended_ttl: Duration::from_secs(24 * 3600),
+            tls: RedisTls::default(),
         }
     }
 }
@@ -85,7 +90,7 @@ impl RedisStore {
     /// Connects (failing if Redis does not answer) and starts following changes.
     pub async fn open(options: &RedisOptions) -> Result<RedisStore, StoreError> {
         let what = format!("redis {}", redact(&options.url));
-        let (conn, subscribers) = connect(&what, &options.url).await?;
+        let (conn, subscribers) = connect(&what, &options.url, &options.tls).await?;
         let (tx, _) = broadcast::channel(1024);
         let held = Arc::new(DashMap::new());
         let watcher = tokio::spawn(watch(

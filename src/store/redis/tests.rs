@@ -25,6 +25,21 @@ fn store_urls_name_one_server_or_the_seed_nodes_of_a_cluster() {
         RedisTarget::parse("redis-cluster://[::1]:7000"),
         Ok(RedisTarget::Cluster(vec!["redis://[::1]:7000".into()]))
     );
+    // TLS: the same forms with rediss, every node of a cluster over TLS.
+    let node = RedisTarget::parse("rediss://:pw@h:6380/1").unwrap();
+    assert_eq!(node, RedisTarget::Node("rediss://:pw@h:6380/1".into()));
+    let cluster = RedisTarget::parse("rediss-cluster://u:pw@a:7000,b:7001").unwrap();
+    assert_eq!(
+        cluster,
+        RedisTarget::Cluster(vec![
+            "rediss://u:pw@a:7000".into(),
+            "rediss://u:pw@b:7001".into()
+        ])
+    );
+    assert!(node.tls() && cluster.tls());
+    for plain in ["redis://h:1", "redis-cluster://a:1,b:2"] {
+        assert!(!RedisTarget::parse(plain).unwrap().tls(), "{plain}");
+    }
     for bad in [
         "redis://",
         "redis-cluster://",
@@ -34,7 +49,10 @@ fn store_urls_name_one_server_or_the_seed_nodes_of_a_cluster() {
         "redis-cluster://:7000",
         "redis-cluster://a:7000/3",
         "redis-cluster://a:7000?x=1",
-        "rediss://h:1",
+        "rediss://",
+        "rediss-cluster://a",
+        "rediss-cluster://a:1/2",
+        "redis-clusters://a:1",
         "http://:pw@h:1",
     ] {
         let e = RedisTarget::parse(bad).unwrap_err();
