@@ -600,16 +600,13 @@ fn unit_tests_live_in_a_file_of_their_own() {
 /// usually holds several jobs, each of which reads better on its own.
 const LONG_FILE: usize = 500;
 
-/// Long files their owners are changing now; they split or give their reason next.
-const LONG_FILES_PENDING: [&str; 1] = ["registry/task.rs"];
-
 #[test]
 fn a_long_source_file_says_why_it_is_one_file() {
     let mut longest = 0;
     for (rel, _, text) in sources() {
         let lines = text.lines().count();
         longest = longest.max(lines);
-        if lines <= LONG_FILE || LONG_FILES_PENDING.contains(&rel.as_str()) {
+        if lines <= LONG_FILE {
             continue;
         }
         let reason = text.lines().take(40).find_map(|l| {

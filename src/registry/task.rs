@@ -17,6 +17,11 @@
 //! after group until the queue is empty (`group.rs`). A failed group fails every request
 //! in it and every request planned on top of it, and publishes nothing. Readers keep
 //! shaping against the published pool meanwhile.
+//!
+//! Long file: planning, leading a group, publishing and refreshing from the store all
+//! read and write the same private fields of the handle (the writer lock, the planned
+//! and published pools, the queue); split, they would need those fields made visible to
+//! the registry. The group's own state machine is already in `group.rs`.
 
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
