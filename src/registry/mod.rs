@@ -425,7 +425,9 @@ impl Registry {
     }
 
     /// For a store shared with other servers: refreshes this server's snapshot of a pool
-    /// whenever the store announces a newer version. Returns `None` (and does nothing)
+    /// whenever the store announces a newer version, and follows the store back when it
+    /// announces an older one than this server published and still has it once this
+    /// server's commits are done (the store lost changes). Returns `None` (and does nothing)
     /// for a store only this server writes. Runs until the store's notifications end.
     pub fn watch_changes(self: &Arc<Self>) -> Option<tokio::task::JoinHandle<()>> {
         let mut changes = self.store.changes()?;
@@ -451,7 +453,14 @@ impl Registry {
                 let Some(task) = registry.tasks.get(&change.task).map(|t| t.clone()) else {
                     continue;
                 };
-                if change.version <= task.published_version() {
+                if change.version < task.published_version() {
+                    // Older than this server's own commit, or a store that went back.
+                    if let Err(e) = task.follow_store_back().await {
+                        tracing::warn!(task = %change.task, error = %e, "could not check a pool against the store");
+                    }
+                    continue;
+                }
+                if change.version == task.published_version() {
                     continue;
                 }
                 match registry.store.load_pool(&change.task).await {

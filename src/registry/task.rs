@@ -275,15 +275,50 @@ impl TaskHandle {
     }
 
     fn publish(&self, pool: Arc<Pool>) {
+        self.publish_if(pool, |new, published| new >= published);
+    }
+
+    /// Publishes `pool` if `take(its version, the published version)`.
+    fn publish_if(&self, pool: Arc<Pool>, take: impl FnOnce(u64, u64) -> bool) {
         let version = pool.version();
         let mut slot = self.pool.write();
-        // A refresh from a shared store may race a commit's publish: never go back.
-        if version >= slot.version() {
+        // A refresh from a shared store may race a commit's publish: never go back
+        // (unless the store itself did: [`TaskHandle::follow_store_back`]).
+        if take(version, slot.version()) {
             *slot = pool;
             self.published.store(version, Ordering::Release);
             drop(slot);
             self.changes.send_replace(version);
         }
+    }
+
+    /// Publishes the pool of a shared store that is *behind* the published one: the
+    /// store lost changes it had acknowledged (a Redis restarted without its last
+    /// writes, under `appendfsync everysec` or `no`). The store is the one place the
+    /// pool is decided, so this server follows it rather than serve a pool no other
+    /// server has, and says so in the log.
+    fn went_back(&self, pool: Arc<Pool>) {
+        let (theirs, ours) = (pool.version(), self.published_version());
+        tracing::warn!(
+            task = %self.key,
+            store_version = theirs,
+            published_version = ours,
+            "the store's pool is behind the one this server published: the store lost changes it had acknowledged; following the store"
+        );
+        self.publish_if(pool, |new, published| new < published);
+    }
+
+    /// On a shared store that announced a version below the published one: once no
+    /// commit of this server is in flight (a notice older than this server's own commit
+    /// is no news), loads the store's pool and follows it if it is still behind.
+    pub async fn follow_store_back(&self) -> Result<(), StoreError> {
+        let _writer = self.quiet().await;
+        if let Some(pool) = self.store.load_pool(&self.key).await? {
+            if pool.version() < self.published_version() {
+                self.went_back(Arc::new(pool));
+            }
+        }
+        Ok(())
     }
 
     /// Whether episode `number` of `env` of `client` was already committed, or is being
@@ -476,6 +511,7 @@ impl TaskHandle {
     /// (then every request in it and every request queued fails).
     async fn commit_group(&self, mut group: Vec<Request>) -> bool {
         let base = self.snapshot();
+        let base_version = base.version();
         let parts: Vec<Vec<PoolOp>> = group
             .iter_mut()
             .map(|r| std::mem::take(&mut r.ops))
@@ -503,7 +539,11 @@ impl TaskHandle {
                 return false;
             }
         };
-        self.publish(done.committed.pool.clone());
+        if done.committed.pool.version() < base_version {
+            self.went_back(done.committed.pool.clone());
+        } else {
+            self.publish(done.committed.pool.clone());
+        }
         if let Some(last) = group.last() {
             if let Some(p) = self.commits.lock().planned.as_mut() {
                 // What is still planned is now on top of the committed pool.

@@ -150,7 +150,9 @@ impl FollowSession {
         let latest = self.task.snapshot();
         let news = match &self.sent {
             None => PoolNews::Snapshot(latest.clone()),
-            Some(sent) if sent.version() >= latest.version() => return None,
+            Some(sent) if sent.version() == latest.version() => return None,
+            // The task's store went back (it lost changes): the learner starts over.
+            Some(sent) if sent.version() > latest.version() => PoolNews::Snapshot(latest.clone()),
             Some(sent) => {
                 let (removed, added) = sent.diff(&latest);
                 if removed.len() == sent.len() && added.len() == latest.len() {

@@ -576,6 +576,16 @@ impl RedisServer {
         RedisServer::start_with(port, Vec::new())
     }
 
+    /// Starts one with `extra` arguments after the durable ones (a later argument wins).
+    pub fn start_with_args(extra: &[&str]) -> RedisServer {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        RedisServer::start_with(port, extra.iter().map(|s| s.to_string()).collect())
+    }
+
     fn start_with(port: u16, extra: Vec<String>) -> RedisServer {
         let mut r = RedisServer {
             child: None,

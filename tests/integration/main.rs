@@ -9,6 +9,7 @@ mod auth;
 mod bad_input;
 mod cli;
 mod durability;
+mod faults;
 mod follow;
 mod group_commit;
 mod metrics;

@@ -80,15 +80,27 @@ pub(super) struct Log {
     pub path: PathBuf,
     /// End of the last complete group.
     pub len: u64,
-    /// Set when a write or sync failed: the log's tail is unknown, so nothing more is
-    /// appended until a restart (which recovers from what reached the disk).
-    pub failed: Option<String>,
+    /// Set when a write or sync failed: nothing more is appended until it is cleared
+    /// ([`Failed`] says how).
+    pub failed: Option<Failed>,
     /// Tasks with records in the log (including deleted ones).
     pub in_log: HashSet<String>,
     /// The log size at which the writer compacts next.
     pub compact_at: u64,
     /// `load` has run: the tasks are known and the log is replayed and truncated.
     pub loaded: bool,
+}
+
+/// A failed append to the log.
+#[derive(Debug, Clone)]
+pub(super) struct Failed {
+    pub message: String,
+    /// The sync failed: what the file holds is unknown (a failed fsync may have dropped
+    /// dirty pages and a later one would not say so), so only a restart, recovering from
+    /// what reached the disk, clears it. Otherwise the write itself failed (a full disk):
+    /// the next group first cuts the file back to its last complete group and syncs it,
+    /// and if that works the log takes changes again.
+    pub in_sync: bool,
 }
 
 /// Counters of durable work, kept by the store.
@@ -195,6 +207,7 @@ fn reply(req: CommitReq, r: Result<(), StoreError>) {
 
 /// Checks, writes, syncs and acknowledges one group.
 fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
+    recover(log);
     let mut accepted = Vec::with_capacity(batch.len());
     {
         let tasks = shared.tasks.lock();
@@ -202,9 +215,13 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
         let mut pending: HashMap<String, u64> = HashMap::new();
         for req in batch {
             if let Some(f) = &log.failed {
-                let m = format!(
-                    "a write to the commit log failed earlier ({f}); restart the server to recover"
-                );
+                let m = match f.in_sync {
+                    true => format!(
+                        "a sync of the commit log failed earlier ({}); restart the server to recover",
+                        f.message
+                    ),
+                    false => f.message.clone(),
+                };
                 reply(req, Err(err(&log.path, m)));
                 continue;
             }
@@ -246,19 +263,30 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     // survives the process (kill -9 included) in the page cache and is made durable by
     // the next group's fdatasync, so it never delays the pool changes behind it.
     let sync = accepted.iter().any(|r| r.change.pool.is_some());
-    let written = log.file.write_all_at(&bytes, log.len).and_then(|()| {
-        if !sync {
-            return Ok(());
+    let written = match log.file.write_all_at(&bytes, log.len) {
+        Err(e) => Err((e, false)),
+        Ok(()) if !sync => Ok(()),
+        Ok(()) => {
+            shared.stats.syncs.add();
+            log.file.sync_data().map_err(|e| (e, true))
         }
-        shared.stats.syncs.add();
-        log.file.sync_data()
-    });
-    if let Err(e) = written {
+    };
+    if let Err((e, in_sync)) = written {
         let m = format!("append and fdatasync: {e}");
-        tracing::error!(file = %log.path.display(), error = %e, "a commit log write failed; no more pool changes are accepted until a restart");
+        match in_sync {
+            true => {
+                tracing::error!(file = %log.path.display(), error = %e, "a commit log sync failed; no more pool changes are accepted until a restart")
+            }
+            false => {
+                tracing::error!(file = %log.path.display(), error = %e, "a commit log write failed; pool changes are refused until a write succeeds again")
+            }
+        }
         // Best effort: cut the partial group off (recovery drops it anyway, as the tail).
         let _ = log.file.set_len(log.len);
-        log.failed = Some(m.clone());
+        log.failed = Some(Failed {
+            message: m.clone(),
+            in_sync,
+        });
         for req in accepted {
             reply(req, Err(err(&log.path, &m)));
         }
@@ -286,6 +314,24 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
         }
         log.in_log.insert(c.task.clone());
         reply(req, Ok(()));
+    }
+}
+
+/// After a failed write (not a failed sync): cuts the log back to its last complete
+/// group and syncs it (the groups written without a sync of their own too); once that
+/// works, the log takes changes again.
+fn recover(log: &mut Log) {
+    if !matches!(&log.failed, Some(f) if !f.in_sync) {
+        return;
+    }
+    if log
+        .file
+        .set_len(log.len)
+        .and_then(|()| log.file.sync_all())
+        .is_ok()
+    {
+        tracing::info!(file = %log.path.display(), "the commit log takes changes again");
+        log.failed = None;
     }
 }
 

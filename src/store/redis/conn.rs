@@ -1,9 +1,12 @@
 //! The connection to Redis: one server or a cluster behind one type, opened from the
 //! store's URL, and Redis errors turned into the store's (unavailable or not).
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
-use redis::aio::{ConnectionLike, ConnectionManager};
+use parking_lot::Mutex;
+use redis::aio::{ConnectionLike, ConnectionManager, ConnectionManagerConfig};
 use redis::cluster_async::ClusterConnection;
 use redis::{Cmd, Pipeline, RedisFuture, Value};
 
@@ -15,14 +18,87 @@ use crate::store::StoreError;
 /// themselves.
 #[derive(Clone)]
 pub(super) enum Conn {
-    Node(ConnectionManager),
+    Node(NodeConn),
     Cluster(ClusterConnection),
+}
+
+/// The multiplexed connection to one Redis server. The manager reconnects after a
+/// dropped connection, but not after a response timeout: a connection that went silent
+/// (a network partition that drops packets rather than resetting connections) would be
+/// waited on forever. So a timeout replaces the manager with a new one, in the
+/// background; requests in flight finish (or time out) on the old one.
+#[derive(Clone)]
+pub(super) struct NodeConn(Arc<Node>);
+
+struct Node {
+    client: redis::Client,
+    config: ConnectionManagerConfig,
+    current: Mutex<ConnectionManager>,
+    replacing: AtomicBool,
+}
+
+impl NodeConn {
+    async fn open(
+        client: redis::Client,
+        config: ConnectionManagerConfig,
+    ) -> redis::RedisResult<Self> {
+        let current = client
+            .get_connection_manager_with_config(config.clone())
+            .await?;
+        Ok(NodeConn(Arc::new(Node {
+            client,
+            config,
+            current: Mutex::new(current),
+            replacing: AtomicBool::new(false),
+        })))
+    }
+
+    /// Sends with the current manager; after a timeout, starts replacing it.
+    fn send<'a, T: Send + 'a>(
+        &self,
+        call: impl FnOnce(ConnectionManager) -> RedisFuture<'a, T>,
+    ) -> RedisFuture<'a, T> {
+        let this = self.clone();
+        let pending = call(self.0.current.lock().clone());
+        Box::pin(async move {
+            let result = pending.await;
+            if matches!(&result, Err(e) if e.is_timeout()) {
+                this.replace();
+            }
+            result
+        })
+    }
+
+    fn replace(&self) {
+        if self.0.replacing.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let node = self.0.clone();
+        tokio::spawn(async move {
+            match node
+                .client
+                .get_connection_manager_with_config(node.config.clone())
+                .await
+            {
+                Ok(fresh) => {
+                    *node.current.lock() = fresh;
+                    tracing::warn!("replaced a Redis connection that stopped answering");
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "could not replace a Redis connection that stopped answering");
+                }
+            }
+            node.replacing.store(false, Ordering::Release);
+        });
+    }
 }
 
 impl ConnectionLike for Conn {
     fn req_packed_command<'a>(&'a mut self, cmd: &'a Cmd) -> RedisFuture<'a, Value> {
         match self {
-            Conn::Node(c) => c.req_packed_command(cmd),
+            Conn::Node(c) => {
+                c.send(|mut m| Box::pin(async move { m.req_packed_command(cmd).await }))
+            }
             Conn::Cluster(c) => c.req_packed_command(cmd),
         }
     }
@@ -34,14 +110,16 @@ impl ConnectionLike for Conn {
         count: usize,
     ) -> RedisFuture<'a, Vec<Value>> {
         match self {
-            Conn::Node(c) => c.req_packed_commands(pipeline, offset, count),
+            Conn::Node(c) => c.send(|mut m| {
+                Box::pin(async move { m.req_packed_commands(pipeline, offset, count).await })
+            }),
             Conn::Cluster(c) => c.req_packed_commands(pipeline, offset, count),
         }
     }
 
     fn get_db(&self) -> i64 {
         match self {
-            Conn::Node(c) => c.get_db(),
+            Conn::Node(c) => c.0.current.lock().get_db(),
             Conn::Cluster(c) => c.get_db(),
         }
     }
@@ -77,12 +155,11 @@ pub(super) async fn connect(
     let (mut conn, subscribers) = match target {
         RedisTarget::Node(url) => {
             let client = open_client(&url)?;
-            let config = redis::aio::ConnectionManagerConfig::new()
+            let config = ConnectionManagerConfig::new()
                 .set_connection_timeout(Some(connect))
                 .set_response_timeout(Some(timeout))
                 .set_max_delay(Duration::from_secs(2));
-            let conn = client
-                .get_connection_manager_with_config(config)
+            let conn = NodeConn::open(client.clone(), config)
                 .await
                 .map_err(|e| unavailable(what, "connecting", e))?;
             (Conn::Node(conn), vec![client])

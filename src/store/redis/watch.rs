@@ -47,6 +47,9 @@ pub(super) async fn watch(
             _ = tick.tick() => {
                 if let Err(e) = poll_versions(&mut conn, &held, &tx).await {
                     tracing::warn!(error = %e, "could not poll pool versions in Redis");
+                    // The subscription may hang on a connection just as dead, silently:
+                    // subscribe again.
+                    messages = None;
                 }
                 if messages.is_none() {
                     messages = subscribe(&subscribers, &mut next).await;
@@ -55,6 +58,9 @@ pub(super) async fn watch(
         }
     }
 }
+
+/// How long a subscription may take before it counts as failed.
+const SUBSCRIBE_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Subscribes on `subscribers[*next]`, moving `next` on to the following one if that
 /// fails (a cluster delivers every `PUBLISH` on every node).
@@ -68,7 +74,11 @@ async fn subscribe(
         pubsub.subscribe(CHANNEL).await?;
         Ok::<_, redis::RedisError>(pubsub.into_on_message())
     };
-    match subscribed.await {
+    // Bounded: behind a partition a new connection can hang rather than fail.
+    let subscribed = tokio::time::timeout(SUBSCRIBE_TIMEOUT, subscribed)
+        .await
+        .unwrap_or_else(|_| Err(std::io::Error::from(std::io::ErrorKind::TimedOut).into()));
+    match subscribed {
         Ok(stream) => Some(stream),
         Err(e) => {
             tracing::warn!(error = %e, "could not subscribe to Redis notifications");
