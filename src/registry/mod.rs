@@ -11,6 +11,7 @@
 //! Per-task locking is described in [`task`].
 
 mod group;
+mod over;
 mod task;
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -60,7 +61,11 @@ pub struct Restored {
     pub tasks: usize,
     /// Trajectories restored over all pools.
     pub trajectories: usize,
+    /// Restored tasks whose config is past this server's limits, served read-only.
+    pub read_only: usize,
 }
+
+pub use over::over_limits;
 
 impl Registry {
     /// Loads every task of `store`.
@@ -73,8 +78,17 @@ impl Registry {
         for t in store.load().await? {
             restored.tasks += 1;
             restored.trajectories += t.pool.len();
-            let handle = TaskHandle::new(t.id.clone(), t.config, t.pool, t.counters, store.clone());
+            let handle = TaskHandle::new(t.id.clone(), t.config, t.pool, t.counters, store.clone())
+                .limited_by(&limits);
+            restored.read_only += usize::from(handle.read_only().is_some());
             tasks.insert(t.id, Arc::new(handle));
+        }
+        if tasks.len() > limits.max_tasks {
+            tracing::warn!(
+                tasks = tasks.len(),
+                max_tasks = limits.max_tasks,
+                "the store holds more tasks than max_tasks: all are served, and CreateTask is refused until some are deleted"
+            );
         }
         Ok((
             Registry {
@@ -162,23 +176,8 @@ impl Registry {
                 };
             }
         }
-        if config.pool_capacity > self.limits.max_pool_capacity {
-            return Err(Error::ResourceExhausted(format!(
-                "config.pool_capacity: {} exceeds this server's limit max_pool_capacity = {}",
-                config.pool_capacity, self.limits.max_pool_capacity
-            )));
-        }
-        let bytes = config.pool_bytes_bound();
-        if bytes > self.limits.max_pool_bytes {
-            return Err(Error::ResourceExhausted(format!(
-                "config: a pool of pool_capacity {} trajectories of max_trajectory_len {} \
-                 actions of {} bytes holds up to {bytes} bytes, past this server's limit \
-                 max_pool_bytes = {}; lower pool_capacity or max_trajectory_len",
-                config.pool_capacity,
-                config.max_trajectory_len,
-                config.action_space.action_bytes(),
-                self.limits.max_pool_bytes
-            )));
+        if let Some(m) = over_limits(&self.limits, &config) {
+            return Err(Error::ResourceExhausted(m));
         }
         if self.tasks.len() >= self.limits.max_tasks {
             return Err(Error::ResourceExhausted(format!(
@@ -258,13 +257,16 @@ impl Registry {
                 hint: self.closest(tenant, id),
             });
         };
-        let handle = Arc::new(TaskHandle::new(
-            key.clone(),
-            t.config,
-            t.pool,
-            t.counters,
-            self.store.clone(),
-        ));
+        let handle = Arc::new(
+            TaskHandle::new(
+                key.clone(),
+                t.config,
+                t.pool,
+                t.counters,
+                self.store.clone(),
+            )
+            .limited_by(&self.limits),
+        );
         let entry = self.tasks.entry(key).and_modify(|held| {
             if held.check_live().is_err() {
                 *held = handle.clone();

@@ -32,6 +32,7 @@ use tokio::sync::{oneshot, Mutex, Notify, OwnedMutexGuard};
 use super::group::{self, Commits, Detached, Planned, Request};
 use crate::core::{ActionSeq, Pool, TaskConfig};
 use crate::error::Error;
+use crate::limits::Limits;
 use crate::store::{Committed, Counters, EndedEpisodes, GroupCommitted, PoolOp, Store, StoreError};
 
 /// Live statistics of a task (the proto's `TaskStats`).
@@ -81,6 +82,8 @@ pub struct TaskHandle {
     synced: parking_lot::Mutex<Counters>,
     /// Announces every publish (the new version) and the deletion, for followers.
     changes: tokio::sync::watch::Sender<u64>,
+    /// Set when the task's config is past this server's limits: why.
+    read_only: Option<String>,
 }
 
 /// Decrements a task's open-stream count when dropped.
@@ -134,7 +137,28 @@ impl TaskHandle {
             ended: parking_lot::Mutex::new(EndedEpisodes::default()),
             synced: parking_lot::Mutex::new(counters),
             changes: tokio::sync::watch::Sender::new(0),
+            read_only: None,
         }
+    }
+
+    /// A task restored from the store or adopted from another server: if its config is
+    /// past `limits`, it is served read-only (steps, reads and DeleteTask go on; every
+    /// change of its pool is refused naming the limit), with a warning in the log.
+    pub(super) fn limited_by(mut self, limits: &Limits) -> Self {
+        if let Some(why) = super::over_limits(limits, &self.config) {
+            tracing::warn!(
+                task = %self.key,
+                reason = %why,
+                "a stored task is past this server's limits: served read-only (its pool is not changed) until the limit is raised or the task deleted"
+            );
+            self.read_only = Some(why);
+        }
+        self
+    }
+
+    /// Why the task is read-only on this server, if it is ([`TaskHandle::limited_by`]).
+    pub fn read_only(&self) -> Option<&str> {
+        self.read_only.as_deref()
     }
 
     /// The task id, as its tenant names it (what clients send and see).
@@ -396,6 +420,13 @@ impl TaskHandle {
         ops: Vec<PoolOp>,
         marks: Option<(&str, &[(u32, u64)])>,
     ) -> Result<Committed, Error> {
+        if let (Some(why), false) = (&self.read_only, ops.is_empty()) {
+            return Err(Error::ResourceExhausted(format!(
+                "task {:?} is read-only on this server, its pool cannot change: {why} \
+                 (the task was stored before the limit was lowered; raise the limit or delete the task)",
+                self.id()
+            )));
+        }
         let (answer, answered) = oneshot::channel();
         let lead = {
             let mut c = self.commits.lock();

@@ -129,6 +129,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         tracing::info!(
             tasks = restored.tasks,
             trajectories = restored.trajectories,
+            read_only = restored.read_only,
             "restored tasks and pools"
         );
     }

@@ -12,6 +12,7 @@ mod durability;
 mod faults;
 mod follow;
 mod group_commit;
+mod limits;
 mod metrics;
 mod redis;
 mod redis_pool_rule;
