@@ -108,6 +108,21 @@ pub async fn add(c: &mut Client, id: &str, t: proto::Trajectory) -> proto::AddTr
 }
 
 /// A discrete trajectory (its `seq` is set to a value the server must ignore).
+/// AddTrajectory of a discrete trajectory: the pool version after, or the status.
+pub async fn try_add_discrete(
+    c: &mut Client,
+    id: &str,
+    actions: &[u32],
+    score: f64,
+) -> Result<u64, tonic::Status> {
+    c.add_trajectory(proto::AddTrajectoryRequest {
+        task_id: id.into(),
+        trajectory: Some(dtraj(actions, score)),
+    })
+    .await
+    .map(|r| r.into_inner().pool_version)
+}
+
 pub fn dtraj(actions: &[u32], score: f64) -> proto::Trajectory {
     proto::Trajectory {
         actions: actions.to_vec(),

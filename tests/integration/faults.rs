@@ -9,28 +9,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tamrm::proto;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tonic::Code;
 
 use crate::common::{
-    self, connect, create, discrete, dtraj, get_pool, Binary, Client, RedisServer,
+    self, connect, create, discrete, get_pool, try_add_discrete as try_add, Binary, Client,
+    RedisServer,
 };
-
-async fn try_add(
-    c: &mut Client,
-    id: &str,
-    actions: &[u32],
-    score: f64,
-) -> Result<u64, tonic::Status> {
-    c.add_trajectory(proto::AddTrajectoryRequest {
-        task_id: id.into(),
-        trajectory: Some(dtraj(actions, score)),
-    })
-    .await
-    .map(|r| r.into_inner().pool_version)
-}
 
 async fn eventually<F, Fut>(what: &str, within: Duration, mut f: F)
 where
@@ -327,8 +313,22 @@ async fn after_redis_loses_its_last_writes_replicas_follow_what_redis_has() {
         "Redis came back with its last save"
     );
     let v = eventually_ok(&mut ca, "t").await;
+    assert_eq!(
+        v,
+        kept.pool_version + 1,
+        "committed on top of what Redis has"
+    );
+    // The fresh replica learns of it (notification or poll).
+    eventually(
+        "the fresh replica sees the commit",
+        Duration::from_secs(10),
+        || {
+            let mut cf = cf.clone();
+            async move { get_pool(&mut cf, "t").await.pool_version == v }
+        },
+    )
+    .await;
     let now = get_pool(&mut cf, "t").await;
-    assert_eq!(v, now.pool_version);
     assert_eq!(
         get_pool(&mut ca, "t").await,
         now,

@@ -7,22 +7,9 @@ use tamrm::proto;
 use tonic::Code;
 
 use crate::common::{
-    self, batch, connect, create, discrete, dtraj, get_pool, Binary, Client, RedisServer,
+    self, batch, connect, create, discrete, get_pool, try_add_discrete as try_add, Binary,
+    RedisServer,
 };
-
-async fn try_add(
-    c: &mut Client,
-    id: &str,
-    actions: &[u32],
-    score: f64,
-) -> Result<u64, tonic::Status> {
-    c.add_trajectory(proto::AddTrajectoryRequest {
-        task_id: id.into(),
-        trajectory: Some(dtraj(actions, score)),
-    })
-    .await
-    .map(|r| r.into_inner().pool_version)
-}
 
 /// Refused as a read-only task's change: RESOURCE_EXHAUSTED naming the limit.
 fn assert_read_only(e: &tonic::Status, limit: &str) {
