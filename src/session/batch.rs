@@ -95,6 +95,11 @@ impl<'a> Batch<'a> {
         self.rewards.is_empty()
     }
 
+    /// The environment of entry `i` (entry i is env i when `env_ids` is empty).
+    pub fn env_of(&self, i: usize) -> usize {
+        self.env_ids.get(i).map_or(i, |&e| e as usize)
+    }
+
     /// Whether entry `i` ends an episode.
     pub fn ends(&self, i: usize) -> bool {
         self.terminated.get(i).copied().unwrap_or(false)
@@ -289,7 +294,7 @@ impl<'a> Batch<'a> {
         let m = space.action_dim();
         let mut out: Entries<'a> = (0..self.len())
             .map(|i| {
-                let env = self.env_ids.get(i).map_or(i, |&e| e as usize);
+                let env = self.env_of(i);
                 let action = if m == 0 {
                     ActionRef::Discrete(self.actions[i])
                 } else {

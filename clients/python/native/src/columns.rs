@@ -1,6 +1,5 @@
-//! One step's columns, from numpy arrays to the session layer's [`Batch`] (embedded) or a
-//! `StepBatch` message (remote), with the client-side checks that keep a bad number from
-//! ever reaching the server (SPEC §8: a rejected batch would end the stream).
+//! One step's columns, from numpy arrays to the [`Batch`] a session shapes, with the
+//! client-side checks that keep a bad number from ever reaching the server (SPEC §8: a rejected batch would end the stream).
 //!
 //! The Python side (`tamrm._session`) has already checked each argument's type and shape
 //! and hands over C-ordered arrays of fixed dtypes (`int64` ids, actions and score rows,
@@ -12,7 +11,6 @@ use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethod
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyFloat;
-use tamrm::proto;
 use tamrm::session::Batch;
 
 /// Why a number cannot be sent, in the Python client's words.
@@ -149,7 +147,6 @@ pub(crate) struct Prepared {
     pub q_values: Vec<f32>,
     pub next_q_values: Vec<f32>,
     pub scores: Vec<(u32, f64)>,
-    pub abandon: Vec<u32>,
     i64s: Vec<i64>,
     f64s: Vec<f64>,
     f64s2: Vec<f64>,
@@ -353,22 +350,6 @@ impl Prepared {
         Ok(())
     }
 
-    /// Entries B.
-    pub fn len(&self) -> usize {
-        self.rewards.len()
-    }
-
-    /// The environment of row `i`.
-    pub fn env_of(&self, i: usize) -> usize {
-        self.env_ids.get(i).map_or(i, |&e| e as usize)
-    }
-
-    /// Whether row `i` ends an episode.
-    pub fn done(&self, i: usize) -> bool {
-        self.terminated.get(i).copied().unwrap_or(false)
-            || self.truncated.get(i).copied().unwrap_or(false)
-    }
-
     /// The session layer's view of the columns.
     pub fn batch(&self) -> Batch<'_> {
         Batch {
@@ -383,25 +364,8 @@ impl Prepared {
             q_values: &self.q_values,
             next_q_values: &self.next_q_values,
             episode_scores: &self.scores,
-            abandon: &self.abandon,
-        }
-    }
-
-    /// The columns as a `StepBatch` message.
-    pub fn to_proto(&self) -> proto::StepBatch {
-        proto::StepBatch {
-            env_ids: self.env_ids.clone(),
-            actions: self.actions.clone(),
-            action_vectors: self.action_vectors.clone(),
-            rewards: self.rewards.clone(),
-            terminated: self.terminated.clone(),
-            truncated: self.truncated.clone(),
-            values: self.values.clone(),
-            next_values: self.next_values.clone(),
-            q_values: self.q_values.clone(),
-            next_q_values: self.next_q_values.clone(),
-            episode_scores: self.scores.iter().copied().collect(),
-            abandon: self.abandon.clone(),
+            // The session adds the abandons it keeps.
+            abandon: &[],
         }
     }
 }
@@ -410,51 +374,4 @@ impl Prepared {
 enum Column {
     Values,
     Q,
-}
-
-/// The answer to one step, column by column (what `tamrm.StepResult` holds).
-#[derive(Debug, Default)]
-pub(crate) struct Answer {
-    pub rewards: Vec<f64>,
-    pub knn_rewards: Vec<f64>,
-    pub potentials: Vec<f64>,
-    pub steps: Vec<i64>,
-    pub knn_active: Vec<bool>,
-    pub pool_version: u64,
-}
-
-impl Answer {
-    /// From the session layer's outputs.
-    pub fn from_outputs(outputs: &[tamrm::core::StepOutput], pool_version: u64) -> Answer {
-        Answer {
-            rewards: outputs.iter().map(|o| o.reward).collect(),
-            knn_rewards: outputs.iter().map(|o| o.knn_reward).collect(),
-            potentials: outputs.iter().map(|o| o.potential).collect(),
-            steps: outputs.iter().map(|o| o.step as i64).collect(),
-            knn_active: outputs.iter().map(|o| o.knn_active).collect(),
-            pool_version,
-        }
-    }
-
-    /// From a `ShapedBatch` message.
-    pub fn from_proto(msg: proto::ShapedBatch) -> Answer {
-        Answer {
-            rewards: msg.rewards,
-            knn_rewards: msg.knn_rewards,
-            potentials: msg.potentials,
-            steps: msg.steps.iter().map(|&s| i64::from(s)).collect(),
-            knn_active: msg.knn_active,
-            pool_version: msg.pool_version,
-        }
-    }
-
-    /// Entries answered, if every column has the same length.
-    pub fn consistent_len(&self) -> Option<usize> {
-        let n = self.rewards.len();
-        (self.knn_rewards.len() == n
-            && self.potentials.len() == n
-            && self.steps.len() == n
-            && self.knn_active.len() == n)
-            .then_some(n)
-    }
 }

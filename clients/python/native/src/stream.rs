@@ -1,5 +1,5 @@
 //! One shaping session as Python sees it (`tamrm.Session` wraps it): the columns in, the
-//! transport's round trip with the GIL released, the answer out as numpy arrays.
+//! client's [`Session`] round trip with the GIL released, the answer out as numpy arrays.
 
 use std::sync::Mutex;
 
@@ -8,61 +8,16 @@ use prost::Message;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
-use tamrm::proto;
-use tonic::Code;
+use tamrm_client::tonic::Code;
+use tamrm_client::{Answer, Session};
 
-use crate::columns::{Answer, Prepared, Shape, StepArgs};
-use crate::tracker::Tracker;
-use crate::{engine, remote, status};
-
-/// Why a step failed.
-pub(crate) enum StepError {
-    /// The server's (or the engine's) answer.
-    Status(tonic::Status),
-    /// A signal handler raised (Ctrl-C) while waiting: the stream is gone.
-    Interrupted(PyErr),
-}
-
-impl From<tonic::Status> for StepError {
-    fn from(s: tonic::Status) -> StepError {
-        StepError::Status(s)
-    }
-}
-
-/// Where a stream's batches go.
-pub(crate) enum Transport {
-    /// The embedded engine: the session layer in-process.
-    Engine(engine::EngineStream),
-    /// A `Shape` stream to a server.
-    Remote(remote::RemoteStream),
-}
-
-impl Transport {
-    /// Shapes one batch. A rejected batch (INVALID_ARGUMENT) changed nothing: a remote
-    /// stream is re-opened with every episode resumed before the error is returned.
-    fn step(&mut self, batch: &Prepared, tracker: &Tracker) -> Result<Answer, StepError> {
-        match self {
-            Transport::Engine(e) => e.step(batch).map_err(StepError::Status),
-            Transport::Remote(r) => r.step(batch, tracker),
-        }
-    }
-
-    fn close(&mut self) {
-        match self {
-            Transport::Engine(e) => e.close(),
-            Transport::Remote(r) => r.close(),
-        }
-    }
-}
+use crate::columns::{Prepared, Shape, StepArgs};
+use crate::{client_error, status};
 
 pub(crate) struct Inner {
-    transport: Transport,
-    tracker: Tracker,
+    session: Session,
     shape: Shape,
     prepared: Prepared,
-    closed: bool,
-    /// The pool version after the last answered batch (or at open).
-    pool_version: u64,
 }
 
 impl Inner {
@@ -73,7 +28,7 @@ impl Inner {
 
     /// Whether the session is closed.
     pub(crate) fn closed(&self) -> bool {
-        self.closed
+        self.session.closed()
     }
 
     /// The environment rewards of the last batch, as sent.
@@ -81,82 +36,20 @@ impl Inner {
         &self.prepared.rewards
     }
 
-    /// Checks `args`, shapes them on the transport and records the answer (the one step
-    /// path of `step` and `step_vec`). A closed session, a bad argument or a failed
+    /// Checks `args`, shapes them through the session and records the answer (the one
+    /// step path of `step` and `step_vec`). A closed session, a bad argument or a failed
     /// round trip is an error; after one that is not a rejected batch the session is
     /// closed.
     pub(crate) fn run(&mut self, py: Python<'_>, args: &StepArgs<'_, '_>) -> PyResult<Answer> {
-        if self.closed {
+        if self.session.closed() {
             return Err(closed_error());
         }
         self.prepared.fill(py, self.shape, args)?;
-        let b = self.prepared.len();
-        if b == 0 {
-            // Nothing is sent; pending abandons wait for a batch with entries.
-            return Ok(Answer::default());
-        }
-        self.tracker.take_abandons(&mut self.prepared.abandon);
-        let result = {
-            let Inner {
-                transport,
-                tracker,
-                prepared,
-                ..
-            } = &mut *self;
-            py.detach(|| transport.step(prepared, tracker))
-        };
-        let answer = match result {
-            Ok(answer) => answer,
-            Err(StepError::Interrupted(interrupt)) => {
-                self.closed = true;
-                self.tracker.discard_episodes();
-                return Err(interrupt);
-            }
-            Err(StepError::Status(err)) => {
-                if err.code() == Code::InvalidArgument {
-                    // Rejected, nothing applied: the stream goes on (re-opened if remote);
-                    // the abandons travel with the next batch.
-                    let sent = std::mem::take(&mut self.prepared.abandon);
-                    self.tracker.restore_abandons(&sent);
-                    if let Transport::Remote(r) = &self.transport {
-                        if r.broken() {
-                            self.closed = true;
-                            self.tracker.discard_episodes();
-                        }
-                    }
-                } else {
-                    self.closed = true;
-                    self.transport.close();
-                    self.tracker.discard_episodes();
-                }
-                return Err(crate::status_error(&err));
-            }
-        };
-        if answer.consistent_len() != Some(b) {
-            self.closed = true;
-            self.transport.close();
-            return Err(status(
-                Code::Internal,
-                format!(
-                    "the server answered {} entries for a batch of {b}",
-                    answer.rewards.len()
-                ),
-            ));
-        }
-        if let Some((env, step)) = self.tracker.ignored_abandon(&self.prepared, &answer) {
-            self.closed = true;
-            self.transport.close();
-            return Err(status(
-                Code::Unimplemented,
-                format!(
-                    "the server ignored StepBatch.abandon (SPEC v1.1 §12): env {env} went on \
-                     with its abandoned episode at step {step}; upgrade the server"
-                ),
-            ));
-        }
-        self.tracker.record(&self.prepared, &answer);
-        self.pool_version = answer.pool_version;
-        Ok(answer)
+        let Inner {
+            session, prepared, ..
+        } = &mut *self;
+        py.detach(|| session.step(&prepared.batch()))
+            .map_err(client_error)
     }
 }
 
@@ -179,30 +72,32 @@ type StepAnswer<'py> = (
 );
 
 impl NativeStream {
-    /// A stream over `transport`, opened on `task` (the answer to `Open`, whichever
-    /// transport gave it: its config tells the action space, its stats the pool version).
-    pub(crate) fn new(transport: Transport, task: &proto::Task, num_envs: usize) -> NativeStream {
-        let config = task.config.unwrap_or_default();
-        let (num_actions, action_dim) = if config.num_actions > 0 {
-            (config.num_actions, 0)
-        } else {
-            (0, config.action_dim as usize)
-        };
-        let keep = matches!(transport, Transport::Remote(_));
+    /// A stream over `session` (opened on a server, a local session, or the engine: the
+    /// task it opened on tells the action space).
+    pub(crate) fn new(session: Session) -> NativeStream {
+        let config = session.opened().config.unwrap_or_default();
+        let opened = session.opened().encode_to_vec();
         NativeStream {
             inner: Mutex::new(Inner {
-                transport,
-                tracker: Tracker::new(num_envs, action_dim, keep),
                 shape: Shape {
-                    num_envs,
-                    num_actions,
+                    num_envs: session.num_envs(),
+                    num_actions: config.num_actions,
                 },
+                session,
                 prepared: Prepared::default(),
-                closed: false,
-                pool_version: task.stats.map_or(0, |s| s.pool_version),
             }),
-            opened: task.encode_to_vec(),
+            opened,
         }
+    }
+
+    /// Opens a session with the GIL released (`open` runs it) as a stream, or the
+    /// error as Python sees it.
+    pub(crate) fn open<E: Send>(
+        py: Python<'_>,
+        open: impl FnOnce() -> Result<Session, E> + Send,
+        error: impl FnOnce(E) -> PyErr,
+    ) -> PyResult<NativeStream> {
+        py.detach(open).map(NativeStream::new).map_err(error)
     }
 
     pub(crate) fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -256,84 +151,67 @@ impl NativeStream {
             critic: None,
         };
         let answer = guard.run(py, &args)?;
-        let pool_version = guard.pool_version;
+        let pool_version = guard.session.pool_version();
         Ok(answer_arrays(py, answer, pool_version))
     }
 
     /// The task's pool version after the last answered batch (or at open).
     #[getter]
     fn pool_version(&self) -> u64 {
-        self.lock().pool_version
+        self.lock().session.pool_version()
     }
 
     /// Drops the current episodes of `envs` (sent with the next batch that has entries).
     fn abandon(&self, envs: Vec<i64>) -> PyResult<()> {
         let mut inner = self.lock();
-        if inner.closed {
+        if inner.session.closed() {
             return Err(closed_error());
         }
-        let n = inner.tracker.num_envs();
-        let mut ids = Vec::with_capacity(envs.len());
-        for e in envs {
-            let id = usize::try_from(e).ok().filter(|&i| i < n).ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "abandon: env id {e} is not in 0..{} (num_envs={n})",
-                    n - 1
-                ))
-            })?;
-            if ids.contains(&(id as u32)) {
-                return Err(PyValueError::new_err(format!(
-                    "abandon: env {e} is listed twice"
-                )));
-            }
-            ids.push(id as u32);
-        }
-        inner.tracker.abandon(&ids);
-        Ok(())
+        let n = inner.session.num_envs();
+        let ids = envs
+            .iter()
+            .map(|&e| {
+                u32::try_from(e).map_err(|_| {
+                    PyValueError::new_err(format!(
+                        "abandon: env id {e} is not in 0..{} (num_envs={n})",
+                        n - 1
+                    ))
+                })
+            })
+            .collect::<PyResult<Vec<u32>>>()?;
+        inner.session.abandon(&ids).map_err(client_error)
     }
 
     /// Per env: the steps sent in its current episode.
     fn episode_steps<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
         let inner = self.lock();
-        let steps: Vec<i64> = inner.tracker.steps().iter().map(|&s| s as i64).collect();
+        let steps: Vec<i64> = inner
+            .session
+            .episode_steps()
+            .iter()
+            .map(|&s| s as i64)
+            .collect();
         steps.into_pyarray(py)
     }
 
     /// Whether the session is closed (by `close` or a failure).
     #[getter]
     fn closed(&self) -> bool {
-        self.lock().closed
+        self.lock().session.closed()
     }
 
     /// Ends the stream (idempotent); episodes in progress are discarded.
     fn close(&self, py: Python<'_>) {
         let mut guard = self.lock();
-        let inner = &mut *guard;
-        if inner.closed {
-            return;
-        }
-        inner.closed = true;
-        inner.tracker.discard_episodes();
-        let transport = &mut inner.transport;
-        py.detach(|| transport.close());
+        let session = &mut guard.session;
+        py.detach(|| session.close());
     }
 
     /// Re-opens a closed session on the same task (new episodes everywhere).
     fn reopen(&self, py: Python<'_>) -> PyResult<()> {
         let mut guard = self.lock();
-        let inner = &mut *guard;
-        inner.tracker.discard_episodes();
-        let Inner {
-            transport, tracker, ..
-        } = inner;
-        py.detach(|| match transport {
-            Transport::Engine(e) => e.reopen(),
-            Transport::Remote(r) => r.reopen(tracker),
-        })
-        .map_err(|s| crate::status_error(&s))?;
-        inner.tracker.reopened();
-        inner.closed = false;
-        Ok(())
+        let session = &mut guard.session;
+        py.detach(|| session.reopen()).map_err(client_error)
     }
 }
 

@@ -20,36 +20,19 @@
 
 use std::collections::VecDeque;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use parking_lot::Mutex;
-use tamrm::core::{ActionCount, ActionSeq, Pool, TaskConfig, Trajectory};
-use tamrm::proto::{self, follow_request, follow_response};
+use tamrm::core::{Pool, TaskConfig};
+use tamrm::proto;
 use tamrm::service::convert::config_input;
 use tamrm::store::{Committed, Counters, PoolChanged, PoolOp, Store, StoreError, StoredTask};
 use tokio::sync::{broadcast, mpsc, oneshot};
-use tokio_stream::wrappers::ReceiverStream;
-use tonic::metadata::MetadataMap;
-use tonic::{Code, Status, Streaming};
+use tonic::{Code, Status};
 
-use crate::remote::{connect_error, request, resumable, Targets, FIRST_PAUSE, MAX_PAUSE};
-
-/// How long a follow stream may stay without a message from the learner before the
-/// driver sends an empty one (servers close streams idle for `stream_idle_timeout_secs`,
-/// 600 s by default).
-const KEEPALIVE: Duration = Duration::from_secs(20);
-
-/// What a commit (or a steps report) waits for: the ack and the followed pool then.
-type Reply = oneshot::Sender<Result<(proto::EndsAck, Arc<Pool>), Status>>;
-/// The receiving end of a [`Reply`].
-type Answer = oneshot::Receiver<Result<(proto::EndsAck, Arc<Pool>), Status>>;
-
-/// One message for the server.
-struct Outgoing {
-    msg: proto::EpisodeEnds,
-    /// `None` for a message nobody waits for (a steps report, a keepalive).
-    reply: Option<Reply>,
-}
+use super::connection::Connection;
+use super::driver::{drive, Answer, Outgoing};
+use super::wire::{end_proto, pool_from};
 
 /// An end (a message of ends) committed without waiting for its ack, and what the
 /// learner planned of it.
@@ -87,23 +70,23 @@ impl Unsettled {
 }
 
 /// What the store and its driver share.
-struct Shared {
+pub(crate) struct Shared {
     /// The task's key in the local registry (its id: the default tenant).
-    key: String,
-    config: TaskConfig,
+    pub(crate) key: String,
+    pub(crate) config: TaskConfig,
     /// The followed pool: the server's, as of the last update received.
-    pool: Mutex<Arc<Pool>>,
-    changes: broadcast::Sender<PoolChanged>,
+    pub(crate) pool: Mutex<Arc<Pool>>,
+    pub(crate) changes: broadcast::Sender<PoolChanged>,
     /// The status of the last failure the server answered, for the session's error.
-    failure: Mutex<Option<Status>>,
+    pub(crate) failure: Mutex<Option<Status>>,
     /// Why the driver ended, if the server refused the stream for good.
-    ended: Mutex<Option<Status>>,
+    pub(crate) ended: Mutex<Option<Status>>,
     /// Woken whenever the driver answers a message (for [`FollowStore::wait_acks`]).
-    answered: tokio::sync::Notify,
+    pub(crate) answered: tokio::sync::Notify,
 }
 
 impl Shared {
-    fn set_pool(&self, pool: Pool) {
+    pub(crate) fn set_pool(&self, pool: Pool) {
         let version = pool.version();
         *self.pool.lock() = Arc::new(pool);
         let _ = self.changes.send(PoolChanged {
@@ -113,18 +96,6 @@ impl Shared {
         });
     }
 }
-
-/// Where and how the driver connects.
-pub(crate) struct Connection {
-    pub targets: Arc<Targets>,
-    pub metadata: MetadataMap,
-    pub tls: bool,
-    pub resume_timeout: Option<Duration>,
-    pub task_id: String,
-    pub num_envs: u32,
-    pub client_id: String,
-}
-
 /// A store that follows one task of a server (SPEC §13).
 pub(crate) struct FollowStore {
     shared: Arc<Shared>,
@@ -142,164 +113,6 @@ pub(crate) struct FollowStore {
     opened: proto::Task,
     description: String,
 }
-
-fn pool_from(config: &TaskConfig, p: proto::Pool) -> Result<Pool, Status> {
-    let trajectories = p
-        .trajectories
-        .into_iter()
-        .map(|t| trajectory_from(config, t))
-        .collect::<Result<Vec<_>, _>>()?;
-    Pool::restore(
-        config.pool_capacity as usize,
-        trajectories,
-        p.pool_version,
-        p.next_seq,
-    )
-    .map_err(|e| Status::internal(format!("the server's pool snapshot is malformed: {e}")))
-}
-
-fn trajectory_from(config: &TaskConfig, t: proto::Trajectory) -> Result<Trajectory, Status> {
-    let actions = config
-        .action_space
-        .to_seq(t.actions, t.action_vectors, ActionCount::AtLeastOne)
-        .map_err(|e| {
-            Status::internal(format!(
-                "the server sent a malformed trajectory (seq {}): {}",
-                t.seq, e.message
-            ))
-        })?;
-    Ok(Trajectory {
-        actions,
-        score: t.score,
-        seq: t.seq,
-    })
-}
-
-/// The pool after an update, or an error if it does not apply to `pool`.
-fn updated(config: &TaskConfig, pool: &Pool, u: proto::PoolUpdate) -> Result<Pool, Status> {
-    if u.base_version != pool.version() {
-        return Err(Status::internal(format!(
-            "the server sent an update from version {} to a copy at version {}",
-            u.base_version,
-            pool.version()
-        )));
-    }
-    let added = u
-        .added
-        .into_iter()
-        .map(|t| trajectory_from(config, t).map(Arc::new))
-        .collect::<Result<Vec<_>, _>>()?;
-    pool.with_update(&u.removed, added, u.pool_version, u.next_seq)
-        .map_err(|e| Status::internal(format!("the server's pool update is malformed: {e}")))
-}
-
-/// An open Follow stream: its sender and what it receives.
-struct Stream {
-    tx: mpsc::Sender<proto::FollowRequest>,
-    inbound: Streaming<proto::FollowResponse>,
-}
-
-fn ends_request(msg: proto::EpisodeEnds) -> proto::FollowRequest {
-    proto::FollowRequest {
-        kind: Some(follow_request::Kind::Ends(msg)),
-    }
-}
-
-/// One of the first messages of a Follow stream (the stream must not end before them).
-async fn first_messages(
-    inbound: &mut Streaming<proto::FollowResponse>,
-    target: &str,
-    tls: bool,
-) -> Result<follow_response::Kind, Status> {
-    match inbound.message().await {
-        Ok(Some(proto::FollowResponse { kind: Some(kind) })) => Ok(kind),
-        Ok(_) => Err(Status::unavailable(
-            "the server ended the Follow stream before sending the pool",
-        )),
-        Err(s) => Err(connect_error(target, tls, s)),
-    }
-}
-
-impl Connection {
-    /// Opens a Follow stream on address `at`: the opened task and the pool snapshot.
-    async fn open_at(&self, at: usize) -> Result<(Stream, proto::Task, proto::Pool), Status> {
-        let target = self.targets.get(at);
-        let name = target.endpoint.uri().to_string();
-        let (tx, rx) = mpsc::channel(16);
-        let open = proto::FollowRequest {
-            kind: Some(follow_request::Kind::Open(proto::FollowOpen {
-                task_id: self.task_id.clone(),
-                num_envs: self.num_envs,
-                client_id: self.client_id.clone(),
-            })),
-        };
-        tx.send(open)
-            .await
-            .map_err(|_| Status::internal("the stream's sender closed"))?;
-        let mut client = target.client.clone();
-        let req = request(ReceiverStream::new(rx), &self.metadata, None);
-        let mut inbound = client
-            .follow(req)
-            .await
-            .map_err(|s| connect_error(&name, self.tls, s))?
-            .into_inner();
-        let task = match first_messages(&mut inbound, &name, self.tls).await? {
-            follow_response::Kind::Opened(task) => task,
-            _ => {
-                return Err(Status::internal(
-                    "expected 'opened' first on a Follow stream",
-                ))
-            }
-        };
-        let pool = match first_messages(&mut inbound, &name, self.tls).await? {
-            follow_response::Kind::Snapshot(pool) => pool,
-            _ => {
-                return Err(Status::internal(
-                    "expected the pool's snapshot after 'opened'",
-                ))
-            }
-        };
-        Ok((Stream { tx, inbound }, task, pool))
-    }
-
-    /// Opens a stream on the current address or, failing that, on the next ones that
-    /// answer, retrying with backoff for up to `resume_timeout` (once without one).
-    async fn open(&self) -> Result<(Stream, proto::Task, proto::Pool), Status> {
-        let deadline = self.resume_timeout.map(|t| Instant::now() + t);
-        let mut pause = FIRST_PAUSE;
-        let mut at = self.targets.current();
-        loop {
-            let mut failure = None;
-            for i in std::iter::once(at).chain(self.targets.after(at).take(self.targets.len() - 1))
-            {
-                match self.open_at(i).await {
-                    Ok(opened) => {
-                        self.targets.set_current(i);
-                        return Ok(opened);
-                    }
-                    Err(s) if resumable(&s) => failure = Some(s),
-                    Err(s) => return Err(s),
-                }
-            }
-            let failure = failure.unwrap_or_else(|| Status::unavailable("no server"));
-            match deadline {
-                Some(d) if Instant::now() + pause < d => {}
-                _ => {
-                    return Err(Status::unavailable(format!(
-                        "no server answered the Follow stream of task {:?} ({}): {}",
-                        self.task_id,
-                        self.targets.names(),
-                        failure.message()
-                    )))
-                }
-            }
-            tokio::time::sleep(pause).await;
-            pause = (pause * 2).min(MAX_PAUSE);
-            at = self.targets.current();
-        }
-    }
-}
-
 impl FollowStore {
     /// Opens the Follow stream (on `rt`, the module's runtime) and starts its driver.
     pub(crate) fn open(
@@ -544,32 +357,6 @@ impl FollowStore {
     }
 }
 
-/// One episode end as the proto's `EpisodeEnd`.
-fn end_proto(op: PoolOp) -> Result<proto::EpisodeEnd, Status> {
-    let PoolOp::Offer {
-        actions,
-        score,
-        end: Some(mark),
-    } = op
-    else {
-        return Err(Status::internal(
-            "a local session commits only the episode ends of a named client",
-        ));
-    };
-    let (actions, action_vectors) = match actions {
-        ActionSeq::Discrete(v) => (v, Vec::new()),
-        ActionSeq::Continuous { data, .. } => (Vec::new(), data),
-    };
-    Ok(proto::EpisodeEnd {
-        env_id: mark.env,
-        episode: mark.episode,
-        actions,
-        action_vectors,
-        score: Some(score),
-        reward_sum: score,
-    })
-}
-
 #[async_trait::async_trait]
 impl Store for FollowStore {
     fn describe(&self) -> String {
@@ -701,174 +488,4 @@ impl Store for FollowStore {
         }
         Ok(None)
     }
-}
-
-/// What ended a connection of the driver.
-enum Broke {
-    /// The store was dropped and every message answered: done.
-    Done,
-    /// The stream broke: re-open and re-send.
-    Resume(Status),
-    /// The server refused the stream or a message for good.
-    Fail(Status),
-}
-
-/// Runs one connection until it breaks: sends `queued` messages, keeps `pending` (sent,
-/// not acknowledged) in order, applies the pool's snapshots and updates.
-async fn serve(
-    shared: &Shared,
-    stream: &mut Stream,
-    pending: &mut VecDeque<Outgoing>,
-    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
-) -> Broke {
-    let mut closing = false;
-    let mut last_sent = tokio::time::Instant::now();
-    loop {
-        if closing && pending.is_empty() {
-            return Broke::Done;
-        }
-        let keepalive = tokio::time::sleep_until(last_sent + KEEPALIVE);
-        tokio::select! {
-            out = queued.recv(), if !closing => match out {
-                Some(out) => {
-                    last_sent = tokio::time::Instant::now();
-                    let sent = stream.tx.send(ends_request(out.msg.clone())).await;
-                    pending.push_back(out);
-                    if sent.is_err() {
-                        return Broke::Resume(Status::unavailable("the follow stream closed"));
-                    }
-                }
-                None => closing = true,
-            },
-            msg = stream.inbound.message() => {
-                let kind = match msg {
-                    Ok(Some(proto::FollowResponse { kind: Some(kind) })) => kind,
-                    Ok(_) => return Broke::Resume(Status::unavailable("the server ended the follow stream")),
-                    Err(s) if resumable(&s) => return Broke::Resume(s),
-                    Err(s) => return Broke::Fail(s),
-                };
-                let applied = match kind {
-                    follow_response::Kind::Snapshot(p) => pool_from(&shared.config, p),
-                    follow_response::Kind::Update(u) => {
-                        let base = shared.pool.lock().clone();
-                        updated(&shared.config, &base, u)
-                    }
-                    follow_response::Kind::Ack(ack) => {
-                        let Some(out) = pending.pop_front() else {
-                            return Broke::Resume(Status::internal("an ack nobody waits for"));
-                        };
-                        if let Some(reply) = out.reply {
-                            let _ = reply.send(Ok((ack, shared.pool.lock().clone())));
-                            shared.answered.notify_waiters();
-                        }
-                        continue;
-                    }
-                    follow_response::Kind::Opened(_) => {
-                        Err(Status::internal("a second 'opened' on a Follow stream"))
-                    }
-                };
-                match applied {
-                    Ok(pool) => shared.set_pool(pool),
-                    // A copy that no longer agrees: a new stream brings a snapshot.
-                    Err(s) => return Broke::Resume(s),
-                }
-            }
-            _ = keepalive, if !closing => {
-                last_sent = tokio::time::Instant::now();
-                let out = Outgoing { msg: proto::EpisodeEnds::default(), reply: None };
-                let sent = stream.tx.send(ends_request(out.msg.clone())).await;
-                pending.push_back(out);
-                if sent.is_err() {
-                    return Broke::Resume(Status::unavailable("the follow stream closed"));
-                }
-            }
-        }
-    }
-}
-
-/// The driver: serves connections until the store is dropped or stopped, re-opening
-/// broken ones.
-async fn drive(
-    conn: Arc<Connection>,
-    shared: Arc<Shared>,
-    first: Stream,
-    mut queued: mpsc::UnboundedReceiver<Outgoing>,
-) {
-    let mut pending = VecDeque::new();
-    let mut stream = Some(first);
-    loop {
-        let mut current = match stream.take() {
-            Some(s) => s,
-            None => match conn.open().await {
-                Ok((s, _, snapshot)) => {
-                    match pool_from(&shared.config, snapshot) {
-                        Ok(pool) => shared.set_pool(pool),
-                        Err(status) => return fail_all(&shared, &mut pending, &mut queued, status),
-                    }
-                    let mut resent = true;
-                    for out in &pending {
-                        resent &= s.tx.send(ends_request(out.msg.clone())).await.is_ok();
-                    }
-                    if !resent {
-                        continue;
-                    }
-                    s
-                }
-                Err(status) => {
-                    // Nobody answered within resume_timeout: fail what waits; a later
-                    // commit tries again.
-                    fail_waiting(&shared, &mut pending, &mut queued, status);
-                    if queued.is_closed() && pending.is_empty() {
-                        return;
-                    }
-                    match queued.recv().await {
-                        Some(out) => {
-                            pending.push_back(out);
-                            continue;
-                        }
-                        None => return,
-                    }
-                }
-            },
-        };
-        match serve(&shared, &mut current, &mut pending, &mut queued).await {
-            Broke::Done => return,
-            Broke::Resume(status) => {
-                tracing::debug!(error = %status, "follow stream broke; re-opening it");
-            }
-            Broke::Fail(status) => return fail_all(&shared, &mut pending, &mut queued, status),
-        }
-    }
-}
-
-/// Answers every waiting message with `status` (the messages are dropped).
-fn fail_waiting(
-    shared: &Shared,
-    pending: &mut VecDeque<Outgoing>,
-    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
-    status: Status,
-) {
-    while let Ok(out) = queued.try_recv() {
-        pending.push_back(out);
-    }
-    for out in pending.drain(..) {
-        if let Some(reply) = out.reply {
-            let _ = reply.send(Err(status.clone()));
-        }
-    }
-    shared.answered.notify_waiters();
-}
-
-/// Ends the driver: every message now and later fails with `status`.
-fn fail_all(
-    shared: &Shared,
-    pending: &mut VecDeque<Outgoing>,
-    queued: &mut mpsc::UnboundedReceiver<Outgoing>,
-    status: Status,
-) {
-    tracing::debug!(error = %status, "follow stream refused");
-    *shared.ended.lock() = Some(status.clone());
-    fail_waiting(shared, pending, queued, status.clone());
-    queued.close();
-    fail_waiting(shared, pending, queued, status);
 }

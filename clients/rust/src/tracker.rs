@@ -3,12 +3,14 @@
 //! (SPEC §9: its actions so far, Σ R, and the number of episodes the env has ended).
 
 use tamrm::proto;
+use tamrm::session::Batch;
 
-use crate::columns::{Answer, Prepared};
+use crate::answer::Answer;
 
-/// Per-environment episode state of one stream, as the client sees it.
+/// Per-environment episode state of one stream, as the client sees it (a [`crate::Session`]
+/// keeps one; a [`crate::Transport`] reads it to resume).
 #[derive(Debug)]
-pub(crate) struct Tracker {
+pub struct Tracker {
     /// Actions per step of a continuous task (0: discrete).
     action_dim: usize,
     /// Whether to keep each episode's actions (for a remote stream's resume).
@@ -26,6 +28,8 @@ pub(crate) struct Tracker {
 }
 
 impl Tracker {
+    /// The state of `num_envs` environments at t = 0; `action_dim` 0 for a discrete task;
+    /// `keep_actions` when the transport resumes episodes (it needs their actions).
     pub fn new(num_envs: usize, action_dim: usize, keep_actions: bool) -> Tracker {
         Tracker {
             action_dim,
@@ -51,7 +55,7 @@ impl Tracker {
     }
 
     /// Records abandons (checked by the caller: in range, none twice).
-    pub fn abandon(&mut self, envs: &[u32]) {
+    pub(crate) fn abandon(&mut self, envs: &[u32]) {
         for &e in envs {
             if !self.abandon_pending.contains(&e) {
                 self.abandon_pending.push(e);
@@ -65,7 +69,7 @@ impl Tracker {
     }
 
     /// Moves the pending abandons into the batch about to be sent.
-    pub fn take_abandons(&mut self, into: &mut Vec<u32>) {
+    pub(crate) fn take_abandons(&mut self, into: &mut Vec<u32>) {
         into.clear();
         into.append(&mut self.abandon_pending);
         for &e in into.iter() {
@@ -74,7 +78,7 @@ impl Tracker {
     }
 
     /// Puts abandons back after a batch that was not applied.
-    pub fn restore_abandons(&mut self, sent: &[u32]) {
+    pub(crate) fn restore_abandons(&mut self, sent: &[u32]) {
         for &e in sent {
             if !self.abandon_pending.contains(&e) {
                 self.abandon_pending.push(e);
@@ -85,7 +89,11 @@ impl Tracker {
 
     /// Whether a sent abandon was ignored (a server older than SPEC v1.1 §12): the env's
     /// first entry of the answer went on with the dropped episode. Returns that env.
-    pub fn ignored_abandon(&mut self, batch: &Prepared, answer: &Answer) -> Option<(usize, i64)> {
+    pub(crate) fn ignored_abandon(
+        &mut self,
+        batch: &Batch<'_>,
+        answer: &Answer,
+    ) -> Option<(usize, i64)> {
         if !self.unconfirmed.iter().any(|&u| u) {
             return None;
         }
@@ -103,11 +111,11 @@ impl Tracker {
     }
 
     /// Records an answered batch.
-    pub fn record(&mut self, batch: &Prepared, answer: &Answer) {
+    pub(crate) fn record(&mut self, batch: &Batch<'_>, answer: &Answer) {
         let dim = self.action_dim;
         for i in 0..batch.len() {
             let env = batch.env_of(i);
-            if batch.done(i) {
+            if batch.ends(i) {
                 self.steps[env] = 0;
                 self.ended[env] += 1;
                 self.actions[env].clear();
@@ -129,7 +137,7 @@ impl Tracker {
     }
 
     /// A closed stream's episodes are discarded (SPEC §6): nothing to resume.
-    pub fn discard_episodes(&mut self) {
+    pub(crate) fn discard_episodes(&mut self) {
         for e in 0..self.num_envs() {
             self.steps[e] = 0;
             self.actions[e].clear();
@@ -158,7 +166,7 @@ impl Tracker {
     }
 
     /// After a (re-)open: the pending abandons were not resumed, so they start anew.
-    pub fn reopened(&mut self) {
+    pub(crate) fn reopened(&mut self) {
         self.abandon_pending.clear();
         self.unconfirmed.iter_mut().for_each(|u| *u = false);
         for e in 0..self.num_envs() {
