@@ -207,10 +207,10 @@ fn crate_paths(code: &str) -> Vec<Vec<&str>> {
         .collect()
 }
 
-/// The top-level modules of the crate: every file and directory under `src/` but the
-/// crate roots.
-fn top_modules() -> BTreeSet<String> {
-    fs::read_dir(src())
+/// The top-level modules of the crate whose sources are in `root`: every file and
+/// directory there but the crate roots.
+fn top_modules_in(root: &Path) -> BTreeSet<String> {
+    fs::read_dir(root)
         .unwrap()
         .map(|e| e.unwrap().path())
         .filter_map(|p| {
@@ -225,7 +225,12 @@ fn top_modules() -> BTreeSet<String> {
 /// the module (0 for the module's own file, 1 for a submodule's, ...); empty if there is
 /// no such module.
 fn module_files(segments: &[&str]) -> Vec<(PathBuf, usize)> {
-    let base = segments.iter().fold(src(), |p, s| p.join(s));
+    module_files_in(&src(), segments)
+}
+
+/// [`module_files`] of the crate whose sources are in `root`.
+fn module_files_in(root: &Path, segments: &[&str]) -> Vec<(PathBuf, usize)> {
+    let base = segments.iter().fold(root.to_path_buf(), |p, s| p.join(s));
     let mut files = Vec::new();
     let file = base.with_extension("rs");
     if file.is_file() {
@@ -334,12 +339,17 @@ fn the_error_type_uses_leaf_modules_only() {
 
 /// Which top-level modules each top-level module uses (tests included).
 fn module_graph() -> BTreeMap<String, BTreeSet<String>> {
-    let modules = top_modules();
+    module_graph_in(&src())
+}
+
+/// [`module_graph`] of the crate whose sources are in `root`.
+fn module_graph_in(root: &Path) -> BTreeMap<String, BTreeSet<String>> {
+    let modules = top_modules_in(root);
     modules
         .iter()
         .map(|m| {
             let mut uses = BTreeSet::new();
-            for (file, _) in module_files(&[m.as_str()]) {
+            for (file, _) in module_files_in(root, &[m.as_str()]) {
                 let code = code_of(&fs::read_to_string(&file).unwrap());
                 for path in crate_paths(&code) {
                     if let Some(&top) = path.first() {
@@ -419,8 +429,8 @@ fn nothing_uses_the_server_and_only_the_server_uses_the_settings() {
     }
 }
 
-/// What the Python extension (`clients/python/native`) may use of the service: the
-/// in-process `ShapingService` and these conversions. The rest of the service, the
+/// What the client crates (the Rust client and the Python extension built on it) may use
+/// of the service: the in-process `ShapingService` and these conversions. The rest of the service, the
 /// server and the settings are the server's internals.
 const NATIVE_SERVICE_SEAMS: [&str; 3] = [
     "ShapingService",
@@ -494,10 +504,13 @@ fn a_use_tree_is_read_path_by_path() {
 
 #[test]
 fn the_python_extension_uses_public_seams_not_the_servers_internals() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/native/src");
     let mut files = Vec::new();
-    rust_files(&dir, &mut files);
-    assert!(!files.is_empty(), "no source in {}", dir.display());
+    for (_, root) in CLIENT_CRATES {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join(root);
+        let before = files.len();
+        rust_files(&dir, &mut files);
+        assert!(files.len() > before, "no source in {}", dir.display());
+    }
     let mut seen = BTreeSet::new();
     for file in files {
         let code = code_of(&fs::read_to_string(&file).unwrap());
@@ -532,6 +545,118 @@ fn the_python_extension_uses_public_seams_not_the_servers_internals() {
         seen.contains("ShapingService"),
         "the check found no use of the service: is it blind?"
     );
+}
+
+/// Each line of code (comments cut) of the crate in `root`, with where it is.
+fn code_lines(root: &str) -> Vec<(String, String)> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join(root);
+    let mut files = Vec::new();
+    rust_files(&dir, &mut files);
+    assert!(!files.is_empty(), "no source in {}", dir.display());
+    let mut out = Vec::new();
+    for file in files {
+        let text = fs::read_to_string(&file).unwrap();
+        for (n, line) in code_of(&text).lines().enumerate() {
+            out.push((format!("{}:{}", file.display(), n + 1), line.to_string()));
+        }
+    }
+    out
+}
+
+#[test]
+fn the_client_crates_modules_do_not_import_each_other_in_a_circle() {
+    for (name, root) in CLIENT_CRATES {
+        let graph = module_graph_in(&Path::new(env!("CARGO_MANIFEST_DIR")).join(root));
+        if let Some(c) = circle(&graph) {
+            panic!("an import circle in {name}: {}", c.join(" → "));
+        }
+    }
+    // The checks see the known edges.
+    let client = module_graph_in(&Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/rust/src"));
+    assert!(
+        client["channel"].contains("remote") && client["channel"].contains("local"),
+        "the graph misses known edges: {client:?}"
+    );
+    let native =
+        module_graph_in(&Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/native/src"));
+    assert!(
+        native["channel"].contains("stream") && native["engine"].contains("stream"),
+        "the graph misses known edges: {native:?}"
+    );
+}
+
+/// The session and its episode state know no transport: the [`Transport`] trait is the
+/// seam, so that the remote and the in-process transports depend on the session and not
+/// the other way round.
+#[test]
+fn the_clients_session_knows_no_transport() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/rust/src");
+    for module in [
+        "session", "tracker", "answer", "error", "options", "runtime", "rpc",
+    ] {
+        for (file, _) in module_files_in(&root, &[module]) {
+            let code = code_of(&fs::read_to_string(&file).unwrap());
+            for path in crate_paths(&code) {
+                let top = path.first().copied().unwrap_or_default();
+                assert!(
+                    !["remote", "local", "channel"].contains(&top),
+                    "{}: {module} uses crate::{}: it must not know the transports",
+                    file.display(),
+                    path.join("::")
+                );
+            }
+        }
+    }
+    // The remote transport knows nothing of local sessions.
+    for (file, _) in module_files_in(&root, &["remote"]) {
+        let code = code_of(&fs::read_to_string(&file).unwrap());
+        assert!(
+            !code.contains("crate::local") && !code.contains("crate::channel"),
+            "{}: the remote transport must not use local sessions or the channel",
+            file.display()
+        );
+    }
+}
+
+/// The one gRPC client of the tree is `tamrm-client`: the Python extension reaches tonic
+/// only through it (`tamrm_client::tonic` for its `Code` and `Status`) and makes no client
+/// of its own; the Rust client has nothing of Python.
+#[test]
+fn the_python_extension_leaves_grpc_to_the_client() {
+    let mut seen = 0;
+    for (at, line) in code_lines("clients/python/native/src") {
+        for (i, _) in line.match_indices("tonic") {
+            let ok = line[..i].ends_with("tamrm_client::");
+            assert!(ok, "{at}: the extension uses tonic directly: {line}");
+            seen += 1;
+        }
+        for needle in ["shaping_client", "tonic_health", "Endpoint", "ShapeRequest"] {
+            assert!(
+                !line.contains(needle),
+                "{at}: `{needle}` is the client's: use tamrm_client ({line})"
+            );
+        }
+    }
+    assert!(
+        seen > 0,
+        "the check found no use of tamrm_client::tonic: is it blind?"
+    );
+    let manifest = fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("clients/python/native/Cargo.toml"),
+    )
+    .unwrap();
+    assert!(
+        !manifest.lines().any(|l| l.starts_with("tonic")),
+        "clients/python/native/Cargo.toml depends on tonic: the client crate is the one gRPC client"
+    );
+    for (at, line) in code_lines("clients/rust/src") {
+        for needle in ["pyo3", "numpy", "Python"] {
+            assert!(
+                !line.contains(needle),
+                "{at}: the Rust client uses {needle}: {line}"
+            );
+        }
+    }
 }
 
 /// Where a test module declared in `file` (`mod name;`) lives: Rust's default path.
@@ -595,6 +720,13 @@ fn unit_tests_live_in_a_file_of_their_own() {
     );
 }
 
+/// The client crates, by name and source directory: the Rust client and the Python
+/// client's native extension built on it.
+const CLIENT_CRATES: [(&str, &str); 2] = [
+    ("tamrm-client", "clients/rust/src"),
+    ("tamrm-native", "clients/python/native/src"),
+];
+
 /// How many lines a source file may have before it must say, at its top, why it is one
 /// file (a line `//! Long file: <why>` within its first 40 lines): past that a file
 /// usually holds several jobs, each of which reads better on its own.
@@ -603,7 +735,23 @@ const LONG_FILE: usize = 500;
 #[test]
 fn a_long_source_file_says_why_it_is_one_file() {
     let mut longest = 0;
-    for (rel, _, text) in sources() {
+    let mut all = sources();
+    for (name, root) in CLIENT_CRATES {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join(root);
+        let mut files = Vec::new();
+        rust_files(&root, &mut files);
+        assert!(
+            !files.is_empty(),
+            "no source of {name} in {}",
+            root.display()
+        );
+        for file in files {
+            let rel = file.strip_prefix(&root).unwrap().to_string_lossy();
+            let text = fs::read_to_string(&file).unwrap();
+            all.push((format!("({name}) {rel}"), file, text));
+        }
+    }
+    for (rel, _, text) in all {
         let lines = text.lines().count();
         longest = longest.max(lines);
         if lines <= LONG_FILE {
