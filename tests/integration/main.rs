@@ -12,6 +12,7 @@ mod durability;
 mod follow;
 mod group_commit;
 mod metrics;
+mod quotas;
 mod redis;
 mod redis_pool_rule;
 mod redis_tls;
