@@ -15,7 +15,8 @@
 //! - [`telemetry`]: Prometheus metrics (`--metrics-listen`);
 //! - leaf modules, which use nothing of the crate and which any layer may use:
 //!   [`task_key`] (the key of a tenant's task), [`net`] (TLS files, the text of a failed
-//!   call), [`limits`] (the server limits).
+//!   call), [`limits`] (the server limits), [`quota`] (tenant quotas shared by the
+//!   replicas of a store).
 
 #![warn(missing_docs)]
 
@@ -42,6 +43,7 @@ pub mod proto {
 pub mod error;
 pub mod limits;
 pub mod net;
+pub mod quota;
 pub mod registry;
 pub mod server;
 pub mod service;

@@ -154,6 +154,11 @@ pub struct ServeArgs {
     /// a backstop for lost notifications (the staleness bound) [default: 1000].
     #[arg(long, env = "TAMRM_STORE_POLL_MS", value_name = "MS")]
     pub store_poll_ms: Option<u64>,
+    /// With --store and --api-keys: how long a stream's lease on its tenant's
+    /// max_open_streams lasts without renewal, in milliseconds: the bound on how long the
+    /// streams of a replica that died keep counting [default: 10000].
+    #[arg(long, env = "TAMRM_STORE_LEASE_MS", value_name = "MS")]
+    pub store_lease_ms: Option<u64>,
     /// With a `rediss://` or `rediss-cluster://` store: PEM CA certificate(s) to verify
     /// Redis with [default: the system's roots].
     #[arg(long, env = "TAMRM_STORE_TLS_CA", value_name = "FILE")]
@@ -207,6 +212,8 @@ pub struct FileSettings {
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: Option<u64>,
+    /// Stream lease time of the shared store's tenant quotas, milliseconds.
+    pub store_lease_ms: Option<u64>,
     /// CA file to verify a `rediss://` store with.
     pub store_tls_ca: Option<PathBuf>,
     /// Client certificate for a `rediss://` store.
@@ -243,6 +250,8 @@ pub struct Settings {
     pub store: Option<String>,
     /// Version poll interval of the shared store, milliseconds.
     pub store_poll_ms: u64,
+    /// Stream lease time of the shared store's tenant quotas, milliseconds.
+    pub store_lease_ms: u64,
     /// TLS files for a `rediss://` store.
     pub store_tls: RedisTls,
     /// Server limits.
@@ -259,6 +268,11 @@ pub struct Settings {
     pub worker_threads: Option<usize>,
 }
 
+/// The default of `store_lease_ms`.
+pub const DEFAULT_STORE_LEASE_MS: u64 = 10_000;
+/// The least `store_lease_ms` may be.
+pub const MIN_STORE_LEASE_MS: u64 = 300;
+
 /// The most runtime threads `worker_threads` may ask for.
 pub const MAX_WORKER_THREADS: usize = 1024;
 
@@ -270,6 +284,7 @@ impl Default for Settings {
             port_file: None,
             store: None,
             store_poll_ms: 1000,
+            store_lease_ms: DEFAULT_STORE_LEASE_MS,
             store_tls: RedisTls::default(),
             limits: Limits::default(),
             shutdown_grace_secs: 30,
@@ -316,6 +331,12 @@ impl Settings {
         if s.store_poll_ms == 0 {
             return Err(SettingsError("store_poll_ms must be at least 1".into()));
         }
+        if s.store_lease_ms < MIN_STORE_LEASE_MS {
+            return Err(SettingsError(format!(
+                "store_lease_ms must be at least {MIN_STORE_LEASE_MS} (leases are renewed every third of it), got {}",
+                s.store_lease_ms
+            )));
+        }
         if s.limits.max_message_bytes < 1024 {
             return Err(SettingsError(format!(
                 "max_message_bytes must be at least 1024, got {}",
@@ -349,6 +370,7 @@ impl Settings {
             self.store.clone_from(&f.store);
         }
         set(&mut self.store_poll_ms, f.store_poll_ms);
+        set(&mut self.store_lease_ms, f.store_lease_ms);
         self.store_tls.apply(&RedisTls {
             ca: f.store_tls_ca.clone(),
             cert: f.store_tls_cert.clone(),
@@ -380,6 +402,7 @@ impl Settings {
             self.store.clone_from(&a.store);
         }
         set(&mut self.store_poll_ms, a.store_poll_ms);
+        set(&mut self.store_lease_ms, a.store_lease_ms);
         self.store_tls.apply(&RedisTls {
             ca: a.store_tls_ca.clone(),
             cert: a.store_tls_cert.clone(),

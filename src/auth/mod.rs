@@ -9,21 +9,26 @@
 //! [`Caller::open`]: the default tenant with every right (the server says so at start).
 //!
 //! The key file is read again by [`Access::reload`] (on SIGHUP); usage counters (open
-//! streams, the steps-per-second bucket) carry over. An open stream whose key the reload
+//! streams, the steps-per-second bucket) carry over.
+//!
+//! Usage is kept in this process, unless [`Access::open_with`] is given a
+//! [`QuotaLedger`] shared with the other replicas of a store: then a tenant's open streams
+//! (with `max_open_streams`) are leases in the ledger, and its steps (with
+//! `max_steps_per_second`) come from the ledger's bucket a block at a time
+//! ([`crate::quota`]); the step path awaits the ledger only when its block runs out. An open stream whose key the reload
 //! removes, or whose role it lowers below the stream's, ends at once ([`StreamWatch`]);
 //! the other streams keep going.
 
 mod grant;
 mod keys;
 mod layer;
+mod usage;
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 
 use dashmap::DashMap;
-use parking_lot::{Mutex, RwLock};
+use parking_lot::RwLock;
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
 use subtle::{ConditionallySelectable, ConstantTimeEq};
@@ -34,8 +39,11 @@ pub use keys::{check_tenant, Key, KeyFile, KeyFileError, Quotas, MAX_TENANT_LEN}
 pub use layer::AuthLayer;
 
 use grant::Grant;
+pub use usage::StreamSlot;
+use usage::TenantState;
 
 use crate::error::Error;
+use crate::quota::QuotaLedger;
 use crate::task_key::DEFAULT_TENANT;
 
 /// What a key may do. Each role includes the ones before it.
@@ -135,7 +143,7 @@ impl Caller {
     pub fn open() -> Caller {
         Caller {
             role: Role::Admin,
-            tenant: Arc::new(TenantState::new(DEFAULT_TENANT, Quotas::default())),
+            tenant: Arc::new(TenantState::new(DEFAULT_TENANT, Quotas::default(), None)),
             grant: None,
         }
     }
@@ -167,104 +175,18 @@ impl Caller {
     }
 
     /// Takes one of the tenant's open-stream slots for as long as the returned guard
-    /// lives; `RESOURCE_EXHAUSTED` when the tenant has `max_open_streams` open.
-    pub fn open_stream(&self) -> Result<StreamSlot, Error> {
-        let max = self.tenant.quotas.read().max_open_streams;
-        let open = &self.tenant.open_streams;
-        let took = open.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| match max {
-            Some(m) if n >= m => None,
-            _ => Some(n + 1),
-        });
-        match took {
-            Ok(_) => Ok(StreamSlot(self.tenant.clone())),
-            Err(_) => Err(Error::ResourceExhausted(format!(
-                "stream quota reached: tenant {:?} may have at most max_open_streams = {} streams (Shape and Follow) open",
-                self.tenant.name,
-                max.unwrap_or_default()
-            ))),
-        }
+    /// lives; `RESOURCE_EXHAUSTED` when the tenant has `max_open_streams` open (with a
+    /// shared ledger: over every replica; `UNAVAILABLE` when the ledger cannot answer).
+    pub async fn open_stream(&self) -> Result<StreamSlot, Error> {
+        self.tenant.open_stream().await
     }
 
     /// Charges `entries` step entries to the tenant's steps-per-second bucket;
-    /// `RESOURCE_EXHAUSTED` (nothing charged) when it does not hold that many.
-    pub fn take_steps(&self, entries: usize) -> Result<(), Error> {
-        let Some(rate) = self.tenant.quotas.read().max_steps_per_second else {
-            return Ok(());
-        };
-        let entries = entries as u64;
-        let over = |why: &str| {
-            Err(Error::ResourceExhausted(format!(
-                "step quota: tenant {:?} may shape at most max_steps_per_second = {rate} entries per second; {why}",
-                self.tenant.name
-            )))
-        };
-        if entries > rate {
-            return over(&format!(
-                "a batch of {entries} entries can never fit: send smaller batches"
-            ));
-        }
-        if !self
-            .tenant
-            .bucket
-            .lock()
-            .take(entries, rate, Instant::now())
-        {
-            return over("this batch is over it: slow down and reconnect");
-        }
-        Ok(())
-    }
-}
-
-/// One of a tenant's open-stream slots, released when dropped.
-pub struct StreamSlot(Arc<TenantState>);
-
-impl Drop for StreamSlot {
-    fn drop(&mut self) {
-        self.0.open_streams.fetch_sub(1, Ordering::AcqRel);
-    }
-}
-
-/// A tenant's quotas and usage; lives across key file reloads.
-struct TenantState {
-    name: String,
-    quotas: RwLock<Quotas>,
-    open_streams: AtomicUsize,
-    bucket: Mutex<Bucket>,
-}
-
-/// A token bucket holding at most one second's worth of steps.
-struct Bucket {
-    tokens: f64,
-    at: Instant,
-}
-
-impl Bucket {
-    /// Refills the bucket for the time since the last call at `rate` tokens per second
-    /// (up to `rate`), then takes `n` tokens if it holds them.
-    fn take(&mut self, n: u64, rate: u64, now: Instant) -> bool {
-        let rate = rate as f64;
-        let refill = now.saturating_duration_since(self.at).as_secs_f64() * rate;
-        self.tokens = (self.tokens + refill).min(rate);
-        self.at = now;
-        if self.tokens < n as f64 {
-            return false;
-        }
-        self.tokens -= n as f64;
-        true
-    }
-}
-
-impl TenantState {
-    fn new(name: &str, quotas: Quotas) -> TenantState {
-        TenantState {
-            name: name.to_string(),
-            bucket: Mutex::new(Bucket {
-                tokens: quotas.max_steps_per_second.unwrap_or(0) as f64,
-                at: Instant::now(),
-            }),
-            quotas: RwLock::new(quotas),
-            open_streams: AtomicUsize::new(0),
-        }
+    /// `RESOURCE_EXHAUSTED` (nothing charged) when it does not hold that many. With a
+    /// shared ledger the bucket is the ledger's, taken a block at a time (`UNAVAILABLE`
+    /// when the ledger cannot answer).
+    pub async fn take_steps(&self, entries: usize) -> Result<(), Error> {
+        self.tenant.take_steps(entries).await
     }
 }
 
@@ -278,15 +200,26 @@ pub struct Access {
     path: PathBuf,
     keys: RwLock<Arc<KeySet>>,
     tenants: DashMap<String, Arc<TenantState>>,
+    ledger: Option<Arc<dyn QuotaLedger>>,
 }
 
 impl Access {
-    /// Reads the key file at `path`.
+    /// Reads the key file at `path`; usage is kept in this process.
     pub fn open(path: &Path) -> Result<Access, KeyFileError> {
+        Access::open_with(path, None)
+    }
+
+    /// Reads the key file at `path`; the stream and step quotas are kept in `ledger`
+    /// (shared with the other replicas of a store) if given, else in this process.
+    pub fn open_with(
+        path: &Path,
+        ledger: Option<Arc<dyn QuotaLedger>>,
+    ) -> Result<Access, KeyFileError> {
         let access = Access {
             path: path.to_path_buf(),
             keys: RwLock::new(Arc::new(KeySet { keys: Vec::new() })),
             tenants: DashMap::new(),
+            ledger,
         };
         access.install(KeyFile::read(path)?);
         Ok(access)
@@ -323,8 +256,8 @@ impl Access {
             match self.tenants.get(*t) {
                 Some(state) => *state.quotas.write() = quotas,
                 None => {
-                    self.tenants
-                        .insert(t.to_string(), Arc::new(TenantState::new(t, quotas)));
+                    let state = TenantState::new(t, quotas, self.ledger.clone());
+                    self.tenants.insert(t.to_string(), Arc::new(state));
                 }
             }
         }
@@ -335,7 +268,11 @@ impl Access {
                 let tenant = self
                     .tenants
                     .entry(k.tenant.clone())
-                    .or_insert_with(|| Arc::new(TenantState::new(&k.tenant, Quotas::default())))
+                    .or_insert_with(|| {
+                        let ledger = self.ledger.clone();
+                        let state = TenantState::new(&k.tenant, Quotas::default(), ledger);
+                        Arc::new(state)
+                    })
                     .clone();
                 let kept = old
                     .keys

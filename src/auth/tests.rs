@@ -1,5 +1,7 @@
-use std::time::Duration;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
 
+use super::usage::Bucket;
 use super::*;
 
 fn path(method: &str) -> String {
@@ -123,8 +125,8 @@ fn refusals_never_echo_the_key() {
     }
 }
 
-#[test]
-fn reload_swaps_keys_and_quotas_and_keeps_usage() {
+#[tokio::test]
+async fn reload_swaps_keys_and_quotas_and_keeps_usage() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("keys.toml");
     std::fs::write(
@@ -135,9 +137,9 @@ fn reload_swaps_keys_and_quotas_and_keeps_usage() {
     let a = Access::open(&p).unwrap();
     let old = bearer_of("t-writer");
     let caller = a.authorize(&path("Shape"), Some(&old)).unwrap().unwrap();
-    let slot = caller.open_stream().unwrap();
+    let slot = caller.open_stream().await.unwrap();
     assert!(matches!(
-        caller.open_stream(),
+        caller.open_stream().await,
         Err(Error::ResourceExhausted(m)) if m.contains("max_open_streams = 1")
     ));
 
@@ -161,16 +163,16 @@ fn reload_swaps_keys_and_quotas_and_keeps_usage() {
         .unwrap()
         .unwrap();
     // The slot taken before the reload still counts: one more fits, not two.
-    let second = new.open_stream().unwrap();
-    assert!(new.open_stream().is_err());
+    let second = new.open_stream().await.unwrap();
+    assert!(new.open_stream().await.is_err());
     drop(slot);
-    let third = caller.open_stream().unwrap();
+    let third = caller.open_stream().await.unwrap();
     drop((second, third));
     assert_eq!(caller.tenant.open_streams.load(Ordering::Acquire), 0);
 }
 
-#[test]
-fn tenants_have_their_own_usage() {
+#[tokio::test]
+async fn tenants_have_their_own_usage() {
     let (_d, a) = file(
         &[("a", "writer"), ("b", "writer")],
         "[tenants.a]\nmax_open_streams = 1\n[tenants.b]\nmax_open_streams = 1\nmax_tasks = 4\n",
@@ -183,11 +185,11 @@ fn tenants_have_their_own_usage() {
         .authorize(&path("Shape"), Some(&bearer_of("b-writer")))
         .unwrap()
         .unwrap();
-    let _sa = ca.open_stream().unwrap();
-    let _sb = cb.open_stream().unwrap();
-    assert!(ca.open_stream().is_err() && cb.open_stream().is_err());
+    let _sa = ca.open_stream().await.unwrap();
+    let _sb = cb.open_stream().await.unwrap();
+    assert!(ca.open_stream().await.is_err() && cb.open_stream().await.is_err());
     assert_eq!((ca.max_tasks(), cb.max_tasks()), (None, Some(4)));
-    assert!(Caller::open().open_stream().is_ok());
+    assert!(Caller::open().open_stream().await.is_ok());
 }
 
 #[test]
@@ -211,8 +213,8 @@ fn the_step_bucket_holds_one_second_and_refills() {
     assert!(!b.take(1, 10, t0));
 }
 
-#[test]
-fn step_quota_errors_say_why() {
+#[tokio::test]
+async fn step_quota_errors_say_why() {
     let (_d, a) = file(
         &[("s", "writer")],
         "[tenants.s]\nmax_steps_per_second = 100\n",
@@ -221,12 +223,12 @@ fn step_quota_errors_say_why() {
         .authorize(&path("Shape"), Some(&bearer_of("s-writer")))
         .unwrap()
         .unwrap();
-    let e = c.take_steps(101).unwrap_err().to_string();
+    let e = c.take_steps(101).await.unwrap_err().to_string();
     assert!(e.contains("can never fit") && e.contains("100"), "{e}");
-    c.take_steps(100).unwrap();
-    let e = c.take_steps(100).unwrap_err().to_string();
+    c.take_steps(100).await.unwrap();
+    let e = c.take_steps(100).await.unwrap_err().to_string();
     assert!(e.contains("max_steps_per_second = 100"), "{e}");
-    Caller::open().take_steps(usize::MAX).unwrap();
+    Caller::open().take_steps(usize::MAX).await.unwrap();
 }
 
 #[test]
@@ -237,5 +239,56 @@ fn new_keys_are_random_and_hash_as_documented() {
     assert_eq!(
         hash_key(b"test"),
         "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"
+    );
+}
+
+#[tokio::test]
+async fn with_a_shared_ledger_the_quotas_hold_over_replicas() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("keys.toml");
+    let quotas = "[tenants.t]\nmax_open_streams = 1\nmax_steps_per_second = 100\n";
+    std::fs::write(&p, text(&[("t", "writer")], quotas)).unwrap();
+    // Shared by two Accesses as by two replicas.
+    let shared = crate::quota::testing::FixedLedger::with_tokens(150);
+    let ledger: Arc<dyn QuotaLedger> = shared.clone();
+    let replica = || {
+        Access::open_with(&p, Some(ledger.clone()))
+            .unwrap()
+            .authorize(&path("Shape"), Some(&bearer_of("t-writer")))
+            .unwrap()
+            .unwrap()
+    };
+    let (a, b) = (replica(), replica());
+    let slot = a.open_stream().await.unwrap();
+    let e = b.open_stream().await.unwrap_err();
+    assert!(
+        matches!(&e, Error::ResourceExhausted(m) if m.contains("max_open_streams = 1")),
+        "{e:?}"
+    );
+    assert_eq!(a.tenant.open_streams.load(Ordering::Acquire), 0, "a lease");
+    drop(slot);
+    let _slot = b.open_stream().await.unwrap();
+
+    // 150 tokens for both: A takes a block of 10 for 5, B takes 140 in batches of 70.
+    a.take_steps(5).await.unwrap();
+    b.take_steps(70).await.unwrap();
+    b.take_steps(70).await.unwrap();
+    let e = b.take_steps(1).await.unwrap_err().to_string();
+    assert!(e.contains("max_steps_per_second = 100"), "{e}");
+    // A spends what it holds, and no more.
+    a.take_steps(5).await.unwrap();
+    assert!(a.take_steps(1).await.is_err());
+
+    // A ledger that cannot answer: UNAVAILABLE naming the quota; nothing is let through.
+    shared.down.store(true, Ordering::Release);
+    let e = replica().open_stream().await.unwrap_err();
+    assert!(
+        matches!(&e, Error::StoreUnavailable(m) if m.contains("max_open_streams") && m.contains("redis is down")),
+        "{e:?}"
+    );
+    let e = a.take_steps(1).await.unwrap_err();
+    assert!(
+        matches!(&e, Error::StoreUnavailable(m) if m.contains("max_steps_per_second")),
+        "{e:?}"
     );
 }

@@ -186,14 +186,14 @@ impl Registry {
             )));
         }
         if let Some(max) = tenant_max_tasks {
-            let held = match self.store.task_ids().await? {
-                // A store shared with other servers: the tenant's tasks on every replica,
-                // unless the task exists there already (creating it again adds none).
-                Some(keys) if keys.contains(&key) => None,
-                Some(keys) => Some(keys.iter().filter(|k| split_key(k).0 == tenant).count()),
-                None => Some(self.count(tenant)),
+            // A store shared with other servers counts the tenant's tasks on every
+            // replica and takes the task's place in one step (a task there already adds
+            // none); otherwise the tasks held here are all there are.
+            let fits = match self.store.reserve_task(&key, tenant, max).await? {
+                Some(fits) => fits,
+                None => self.count(tenant) < max,
             };
-            if held.is_some_and(|n| n >= max) {
+            if !fits {
                 return Err(Error::ResourceExhausted(format!(
                     "task quota reached: tenant {tenant:?} may hold at most max_tasks = {max} tasks"
                 )));

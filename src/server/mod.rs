@@ -16,6 +16,7 @@ use tonic::transport::Server;
 use crate::auth::{Access, AuthLayer};
 use crate::net::{self, tls};
 use crate::proto::shaping_server::ShapingServer;
+use crate::quota::QuotaLedger;
 use crate::registry::Registry;
 use crate::service::status::remap_response_headers;
 use crate::service::{ShapingRoutes, ShapingService};
@@ -111,12 +112,20 @@ const CONNECTION_WINDOW: u32 = 16 << 20;
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     // Before anything else: a bad certificate must not leave a half-started server.
     let tls = tls::server_config(&settings.tls)?;
+    // Tenant quotas are kept for every replica in a shared store (when there are keys,
+    // hence tenants); otherwise in this process.
+    let mut ledger: Option<Arc<dyn QuotaLedger>> = None;
     let store: Arc<dyn Store> = match (&settings.store, &settings.data_dir) {
         (Some(url), _) => {
             let mut options = RedisOptions::new(url.as_str());
             options.poll_interval = Duration::from_millis(settings.store_poll_ms);
             options.tls = settings.store_tls.clone();
-            Arc::new(RedisStore::open(&options).await?)
+            let store = RedisStore::open(&options).await?;
+            if settings.api_keys.is_some() {
+                let lease = Duration::from_millis(settings.store_lease_ms);
+                ledger = Some(Arc::new(store.ledger(lease)));
+            }
+            Arc::new(store)
         }
         (None, Some(dir)) => Arc::new(DiskStore::open(dir)?),
         (None, None) => Arc::new(MemoryStore::new()),
@@ -150,7 +159,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         source,
     })?;
 
-    let access = open_access(settings, addr)?;
+    let access = open_access(settings, addr, ledger)?;
     let shutdown = CancellationToken::new();
     let limit = settings.limits.max_message_bytes;
     let mut service = ShapingService::new(registry.clone(), shutdown.clone());
@@ -244,7 +253,11 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
 /// Reads the API key file, if the settings name one, and reloads it on SIGHUP for as long
 /// as the server runs; without one, says that the server is open (a warning when it
 /// listens beyond loopback).
-fn open_access(settings: &Settings, addr: SocketAddr) -> Result<Option<Arc<Access>>, StartError> {
+fn open_access(
+    settings: &Settings,
+    addr: SocketAddr,
+    ledger: Option<Arc<dyn QuotaLedger>>,
+) -> Result<Option<Arc<Access>>, StartError> {
     let Some(path) = &settings.api_keys else {
         if addr.ip().is_loopback() {
             tracing::info!("no --api-keys: the server is open to every local caller (one default tenant, every right)");
@@ -253,7 +266,10 @@ fn open_access(settings: &Settings, addr: SocketAddr) -> Result<Option<Arc<Acces
         }
         return Ok(None);
     };
-    let access = Arc::new(Access::open(path)?);
+    if let Some(ledger) = &ledger {
+        tracing::info!("{}", ledger.describe());
+    }
+    let access = Arc::new(Access::open_with(path, ledger)?);
     tracing::info!(file = %path.display(), "API keys required (authorization: Bearer <key>); SIGHUP reads the file again");
     #[cfg(unix)]
     {

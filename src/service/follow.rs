@@ -148,7 +148,9 @@ async fn decide(
             reward_sum: e.reward_sum,
         })
         .collect();
-    caller.take_steps(usize::try_from(msg.steps).unwrap_or(usize::MAX))?;
+    caller
+        .take_steps(usize::try_from(msg.steps).unwrap_or(usize::MAX))
+        .await?;
     session.ends(&ends, msg.steps).await
 }
 

@@ -89,25 +89,25 @@ impl ShapingService {
     }
 
     /// Starts a Shape stream answering with `A` (prost's messages or [`codec::Answer`]s).
-    fn open_shape<A: stream::Answers>(
+    async fn open_shape<A: stream::Answers>(
         &self,
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<ReceiverStream<Result<A, Status>>>, Status> {
-        self.start_stream("Shape", request, stream::run::<A>)
+        self.start_stream("Shape", request, stream::run::<A>).await
     }
 
     /// Starts a Follow stream (SPEC §13).
-    fn open_follow(
+    async fn open_follow(
         &self,
         request: Request<Streaming<proto::FollowRequest>>,
     ) -> Result<Response<ReceiverStream<Result<proto::FollowResponse, Status>>>, Status> {
-        self.start_stream("Follow", request, follow::run)
+        self.start_stream("Follow", request, follow::run).await
     }
 
     /// Takes one of the caller's stream slots, watches the caller's key (a reload that
     /// takes the key away ends the stream) and spawns `run`, which drives the stream
     /// to its end and sends its answers (two at most queued).
-    fn start_stream<Req, Resp, Fut>(
+    async fn start_stream<Req, Resp, Fut>(
         &self,
         rpc: &'static str,
         request: Request<Streaming<Req>>,
@@ -124,7 +124,7 @@ impl ShapingService {
         Fut: std::future::Future<Output = ()> + Send + 'static,
     {
         let caller = self.caller(&request)?;
-        let slot = caller.open_stream()?;
+        let slot = caller.open_stream().await?;
         let watch = caller.watch_stream(rpc, &self.shutdown);
         let inbound = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
@@ -256,7 +256,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<Streaming<proto::ShapeRequest>>,
     ) -> Result<Response<Self::ShapeStream>, Status> {
-        self.open_shape(request)
+        self.open_shape(request).await
     }
 
     type FollowStream = ReceiverStream<Result<proto::FollowResponse, Status>>;
@@ -265,7 +265,7 @@ impl Shaping for ShapingService {
         &self,
         request: Request<Streaming<proto::FollowRequest>>,
     ) -> Result<Response<Self::FollowStream>, Status> {
-        self.open_follow(request)
+        self.open_follow(request).await
     }
 }
 
@@ -309,8 +309,8 @@ impl tonic::server::StreamingService<proto::ShapeRequest> for ShapeMethod {
     type Future = BoxFuture<Response<Self::ResponseStream>, Status>;
 
     fn call(&mut self, request: Request<Streaming<proto::ShapeRequest>>) -> Self::Future {
-        let started = self.0.open_shape(request);
-        Box::pin(async move { started })
+        let service = self.0.clone();
+        Box::pin(async move { service.open_shape(request).await })
     }
 }
 

@@ -159,7 +159,7 @@ async fn serve<A: Answers>(
             }
             Err(end) => return end,
         };
-        if let Err(e) = caller.take_steps(batch.rewards.len()) {
+        if let Err(e) = caller.take_steps(batch.rewards.len()).await {
             return e.into();
         }
         let started = meter.as_ref().map(|_| Instant::now());

@@ -22,6 +22,7 @@ fn the_store_url_is_checked() {
     let bad = err(&["--store", "http://:secret@h:1"]);
     assert!(bad.contains("redis://") && !bad.contains("secret"), "{bad}");
     assert!(err(&["--store", "redis://h:1", "--store-poll-ms", "0"]).contains("store_poll_ms"));
+    assert!(err(&["--store", "redis://h:1", "--store-lease-ms", "299"]).contains("store_lease_ms"));
     let cluster = "redis-cluster://:pw@a:7000,b:7001";
     let s = Settings::resolve(&parse(&["--store", cluster])).unwrap();
     assert_eq!(s.store.as_deref(), Some(cluster));

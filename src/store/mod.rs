@@ -36,7 +36,7 @@ pub use disk::{DiskStore, FORMAT_VERSION};
 pub use ends::{EndedEpisodes, MAX_REMEMBERED_CLIENTS};
 pub use error::StoreError;
 pub use memory::MemoryStore;
-pub use redis::{RedisOptions, RedisStore, RedisTarget, RedisTls};
+pub use redis::{RedisLedger, RedisOptions, RedisStore, RedisTarget, RedisTls};
 
 /// Per-task counters kept alongside the pool (persisted with every pool change and at
 /// graceful shutdown; a crash may lose the increments since the last write).
@@ -262,6 +262,21 @@ pub trait Store: Send + Sync + 'static {
     }
     /// The ids of every stored task (shared stores; others answer `None`).
     async fn task_ids(&self) -> Result<Option<Vec<String>>, StoreError> {
+        Ok(None)
+    }
+    /// For a store shared with other servers: takes a place for task `id` of `tenant` in
+    /// the store's task index, atomically with the check that the tenant holds fewer than
+    /// `max` tasks there (the task quota over every server, racing creates included):
+    /// `Some(true)` if the task has its place (taken now, or there already), `Some(false)`
+    /// if the tenant holds `max` tasks. `None` for a store only this server writes (the
+    /// registry counts the tasks it holds).
+    async fn reserve_task(
+        &self,
+        id: &str,
+        tenant: &str,
+        max: usize,
+    ) -> Result<Option<bool>, StoreError> {
+        let _ = (id, tenant, max);
         Ok(None)
     }
     /// The episode ends of `client` the store committed on task `id`, as (env, episodes

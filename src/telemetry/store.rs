@@ -108,6 +108,15 @@ impl Store for MeteredStore {
         self.inner.task_ids().await
     }
 
+    async fn reserve_task(
+        &self,
+        id: &str,
+        tenant: &str,
+        max: usize,
+    ) -> Result<Option<bool>, StoreError> {
+        self.inner.reserve_task(id, tenant, max).await
+    }
+
     async fn ended_episodes(&self, id: &str, client: &str) -> Result<Vec<(u32, u64)>, StoreError> {
         self.inner.ended_episodes(id, client).await
     }

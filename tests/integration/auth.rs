@@ -15,11 +15,11 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Status};
 
 /// The key of (tenant, role) in these tests.
-fn key(tenant: &str, role: &str) -> String {
+pub(crate) fn key(tenant: &str, role: &str) -> String {
     format!("key-of-{tenant}-{role}")
 }
 
-fn key_file(dir: &Path, keys: &[(&str, &str)], extra: &str) -> std::path::PathBuf {
+pub(crate) fn key_file(dir: &Path, keys: &[(&str, &str)], extra: &str) -> std::path::PathBuf {
     let mut text = String::new();
     for (tenant, role) in keys {
         text += &format!(
@@ -47,7 +47,7 @@ fn task_id(id: &str) -> String {
 }
 
 /// Opens a Shape stream with `key` on `task` and returns it with the opened task.
-async fn open(
+pub(crate) async fn open(
     c: &mut Client,
     key: Option<&str>,
     task: &str,
@@ -78,7 +78,7 @@ async fn open(
     }
 }
 
-async fn step(
+pub(crate) async fn step(
     tx: &mpsc::Sender<ShapeRequest>,
     answers: &mut tonic::Streaming<ShapeResponse>,
     b: proto::StepBatch,
@@ -97,7 +97,12 @@ async fn step(
 }
 
 /// Calls the RPC `method` on task `task` with `key`; Ok(()) or the status.
-async fn call(c: &mut Client, method: &str, key: Option<&str>, task: &str) -> Result<(), Status> {
+pub(crate) async fn call(
+    c: &mut Client,
+    method: &str,
+    key: Option<&str>,
+    task: &str,
+) -> Result<(), Status> {
     let id = task_id(task);
     match method {
         "CreateTask" => c

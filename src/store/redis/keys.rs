@@ -32,3 +32,22 @@ impl Keys {
         format!("tamrm:{{{task}}}:ended:{incarnation}:{client}")
     }
 }
+
+/// The keys of a tenant's quota usage shared by every replica (`ledger.rs`); both carry the
+/// hash tag `{tenant}`.
+pub(super) struct QuotaKeys {
+    /// The sorted set of the tenant's stream leases (lease id → expiry, ms).
+    pub leases: String,
+    /// The hash of the tenant's steps-per-second bucket.
+    pub steps: String,
+}
+
+impl QuotaKeys {
+    /// The keys of tenant `tenant`.
+    pub fn of(tenant: &str) -> QuotaKeys {
+        QuotaKeys {
+            leases: format!("tamrm:quota:{{{tenant}}}:streams"),
+            steps: format!("tamrm:quota:{{{tenant}}}:steps"),
+        }
+    }
+}

@@ -14,7 +14,9 @@
 //!   the no-double-commit rule of SPEC §9, expiring after `ended_ttl` without commits;
 //! - `tamrm:tasks`, the set of every task key (the only key outside a task's slot; it is
 //!   written before a creation and after a deletion, so a key in it may have no task,
-//!   never the reverse).
+//!   never the reverse);
+//! - `tamrm:quota:{tenant}:streams` and `tamrm:quota:{tenant}:steps`, a tenant's stream
+//!   leases and steps-per-second bucket, shared by every replica (`ledger.rs`).
 //!
 //! Every change is one Lua script, atomic in Redis (`*.lua` beside this file, run by
 //! `scripts.rs`): the §6 update decided against the pool in Redis, the version bump, the
@@ -34,18 +36,20 @@
 //!
 //! The files, one job each: `url.rs` (the URL forms), `tls.rs` (the TLS files), `conn.rs`
 //! (the connection and its errors), `keys.rs` (the key layout), `scripts.rs` and `*.lua` (the atomic changes),
-//! `codec.rs` (a task's hashes to and from the library's types), `store.rs` (the
+//! `ledger.rs` (tenant quotas over every replica), `codec.rs` (a task's hashes to and from the library's types), `store.rs` (the
 //! [`Store`](crate::store::Store) methods), `watch.rs` (following other servers).
 
 mod codec;
 mod conn;
 mod keys;
+mod ledger;
 mod scripts;
 mod store;
 mod tls;
 mod url;
 mod watch;
 
+pub use ledger::RedisLedger;
 pub use store::{RedisOptions, RedisStore};
 pub use tls::RedisTls;
 pub use url::RedisTarget;

@@ -13,6 +13,7 @@ use tokio::sync::broadcast;
 use super::codec::{decode_task, encode_config, field, stored_config};
 use super::conn::{connect, unavailable, Conn};
 use super::keys::{Keys, CHANNEL, TASKS};
+use super::ledger::{reserve_task, RedisLedger};
 use super::scripts::{CommitAnswer, CommitCall, Scripts};
 use super::tls::RedisTls;
 use super::url::redact;
@@ -109,6 +110,11 @@ impl RedisStore {
             tx,
             watcher,
         })
+    }
+
+    /// The tenants' quotas shared by every server of this store; leases of `lease`.
+    pub fn ledger(&self, lease: Duration) -> RedisLedger {
+        RedisLedger::new(self.what.clone(), self.conn.clone(), lease)
     }
 
     fn fail(&self, doing: &str, e: redis::RedisError) -> StoreError {
@@ -434,6 +440,18 @@ impl Store for RedisStore {
             .map_err(|e| self.fail("listing", e))?;
         keys.sort();
         Ok(Some(keys))
+    }
+
+    async fn reserve_task(
+        &self,
+        id: &str,
+        tenant: &str,
+        max: usize,
+    ) -> Result<Option<bool>, StoreError> {
+        let reserved = reserve_task(&mut self.conn.clone(), id, tenant, max).await;
+        Ok(Some(
+            reserved.map_err(|e| self.fail("reserving a task", e))?,
+        ))
     }
 
     async fn sync_counters(
