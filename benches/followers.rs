@@ -22,7 +22,6 @@
 //! `--store memory|dir|both`.
 
 use std::collections::HashMap;
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -34,8 +33,11 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
 
+#[path = "common/server.rs"]
+mod server;
 #[path = "common/workload.rs"]
 mod workload;
+use server::{arg, arg_or, Server};
 use workload::Rng;
 
 const TASK: &str = "followers";
@@ -43,61 +45,6 @@ const CAPACITY: u32 = 20;
 /// One learner in this many applies the updates to its copy of the pool (the others,
 /// which share this machine's two cores with the server, keep only its version).
 const VERIFIED: usize = 50;
-
-struct Server {
-    child: Child,
-    addr: String,
-    _dir: tempfile::TempDir,
-}
-
-impl Server {
-    fn start(durable: bool) -> Server {
-        let bin = std::env::var("TAMRM_BIN").unwrap_or_else(|_| {
-            concat!(env!("CARGO_MANIFEST_DIR"), "/target/release/tamrm").to_string()
-        });
-        let dir = tempfile::tempdir().expect("tempdir");
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("free port")
-            .port();
-        let addr = format!("127.0.0.1:{port}");
-        let mut cmd = Command::new(&bin);
-        cmd.args(["serve", "--listen", &addr]);
-        if durable {
-            cmd.arg("--data-dir").arg(dir.path());
-        }
-        let child = cmd
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {bin}: {e} (cargo build --release first)"));
-        Server {
-            child,
-            addr,
-            _dir: dir,
-        }
-    }
-
-    /// CPU seconds the server process has used (user + system).
-    fn cpu_secs(&self) -> f64 {
-        let stat =
-            std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap_or_default();
-        // Fields after the command name (which ends with ')'): utime is the 12th, stime
-        // the 13th of those (fields 14 and 15 of the line).
-        let rest = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
-        let f: Vec<&str> = rest.split_whitespace().collect();
-        let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-        // The clock tick is 100 Hz on Linux (getconf CLK_TCK).
-        (ticks(11) + ticks(12)) / 100.0
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 /// What every learner records.
 #[derive(Default)]
@@ -240,14 +187,10 @@ fn ms(d: Duration) -> String {
 }
 
 async fn run(durable: bool, learners: usize, connections: usize, interval: Duration, secs: f64) {
-    let server = Server::start(durable);
-    let url = format!("http://{}", server.addr);
-    let mut admin = loop {
-        match ShapingClient::connect(url.clone()).await {
-            Ok(c) => break c,
-            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
-        }
-    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let server = Server::start(durable.then_some(dir.path()), &[]);
+    let url = server.url();
+    let mut admin = server.connect().await;
     admin
         .create_task(proto::CreateTaskRequest {
             task_id: TASK.into(),
@@ -345,28 +288,13 @@ async fn run(durable: bool, learners: usize, connections: usize, interval: Durat
     );
 }
 
-fn arg(args: &[String], name: &str) -> Option<String> {
-    let i = args.iter().position(|a| a == name)?;
-    args.get(i + 1).cloned()
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "--quick");
-    let learners = arg(&args, "--learners")
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(if quick { 100 } else { 1000 });
-    let interval = Duration::from_millis(
-        arg(&args, "--interval-ms")
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(5000),
-    );
-    let secs: f64 = arg(&args, "--secs")
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(if quick { 3.0 } else { 20.0 });
-    let connections = arg(&args, "--connections")
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(50);
+    let learners = arg_or(&args, "--learners", if quick { 100 } else { 1000 });
+    let interval = Duration::from_millis(arg_or(&args, "--interval-ms", 5000));
+    let secs: f64 = arg_or(&args, "--secs", if quick { 3.0 } else { 20.0 });
+    let connections = arg_or(&args, "--connections", 50);
     let stores = arg(&args, "--store").unwrap_or_else(|| "both".into());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use super::snapshot::{write_ends_file, write_snapshot};
+use super::snapshot::{write_snapshots, SnapshotJob};
 use super::writer::ClientEnds;
 use super::Shared;
 use crate::core::Pool;
@@ -53,9 +53,11 @@ impl Entry {
         }
     }
 
-    /// The log holds changes its snapshot lacks.
+    /// Its snapshot lacks changes: of the pool or counters, or of the ended episodes.
     pub(super) fn is_dirty(&self) -> bool {
-        self.pool.version() != self.snap_version || self.ends_gen != self.ends_saved
+        self.pool.version() != self.snap_version
+            || self.counters != self.snap_counters
+            || self.ends_gen != self.ends_saved
     }
 
     /// Records episode ends, per client (env, episodes ended).
@@ -72,7 +74,8 @@ impl Entry {
     pub(super) fn dirty_parts(&self) -> DirtyParts {
         DirtyParts {
             dir: self.dir.clone(),
-            pool: (self.pool.version() != self.snap_version)
+            // The counters are written when they changed, even if the pool did not.
+            pool: (self.pool.version() != self.snap_version || self.counters != self.snap_counters)
                 .then(|| (self.pool.clone(), self.counters, self.snap_seqs.clone())),
             ends: (self.ends_gen != self.ends_saved).then(|| (self.ends.clone(), self.ends_gen)),
         }
@@ -93,22 +96,36 @@ pub(super) struct DirtyParts {
     pub(super) ends: Option<(EndedEpisodes, u64)>,
 }
 
-impl DirtyParts {
-    /// Writes them, and notes in the task's entry what its snapshot now holds.
-    pub(super) fn write(self, shared: &Shared, id: &str) -> Result<(), StoreError> {
-        let syncs = &shared.stats.syncs;
-        if let Some((pool, counters, listed)) = self.pool {
-            let seqs = write_snapshot(&self.dir, &pool, counters, &listed, syncs)?;
-            if let Some(e) = shared.tasks.lock().get_mut(id) {
-                e.snapshot_written(pool.version(), seqs, counters);
-            }
-        }
-        if let Some((ends, generation)) = self.ends {
-            write_ends_file(&self.dir, &ends, syncs)?;
-            if let Some(e) = shared.tasks.lock().get_mut(id) {
-                e.ends_saved = generation;
-            }
-        }
-        Ok(())
+/// Writes the parts every task of `dirty` lacks, in one batch of syncs
+/// ([`write_snapshots`]), and notes in their entries what their snapshots now hold.
+pub(super) fn write_dirty(
+    shared: &Shared,
+    dirty: &[(String, DirtyParts)],
+) -> Result<(), StoreError> {
+    if dirty.is_empty() {
+        return Ok(());
     }
+    let jobs: Vec<SnapshotJob<'_>> = dirty
+        .iter()
+        .map(|(_, p)| SnapshotJob {
+            dir: &p.dir,
+            pool: p
+                .pool
+                .as_ref()
+                .map(|(pool, counters, listed)| (&**pool, *counters, listed.as_slice())),
+            ends: p.ends.as_ref().map(|(ends, _)| ends),
+        })
+        .collect();
+    let seqs = write_snapshots(&jobs, &shared.stats.syncs)?;
+    let mut tasks = shared.tasks.lock();
+    for ((id, parts), seqs) in dirty.iter().zip(seqs) {
+        let Some(e) = tasks.get_mut(id) else { continue };
+        if let (Some((pool, counters, _)), Some(seqs)) = (&parts.pool, seqs) {
+            e.snapshot_written(pool.version(), seqs, *counters);
+        }
+        if let Some((_, generation)) = parts.ends {
+            e.ends_saved = generation;
+        }
+    }
+    Ok(())
 }

@@ -17,7 +17,7 @@ use std::sync::Arc;
 use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
 use super::files::{err, fsync_dir, read_json, remove_tmp_files, traj_path};
 use super::log::{scan, Record, Scan};
-use super::snapshot::{read_ends_file, write_ends_file, write_snapshot};
+use super::snapshot::{read_ends_file, write_snapshots, SnapshotJob};
 use super::writer::{truncate, Log};
 use super::{checked, Entry, Shared, CREATING, DELETING};
 use crate::core::{Pool, Trajectory};
@@ -268,18 +268,31 @@ pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, St
     if records > 0 {
         tracing::info!(log = %log.path.display(), groups = scan.groups.len(), records, tasks_changed = changed.len(), "replayed the commit log");
     }
-    for &i in &changed {
-        let t = &mut tasks[i];
-        t.listed = write_snapshot(
-            &t.dir,
-            &t.task.pool,
-            t.task.counters,
-            &t.listed,
-            &shared.stats.syncs,
-        )?;
-    }
-    for t in tasks.iter().filter(|t| t.ends_changed) {
-        write_ends_file(&t.dir, &t.ends, &shared.stats.syncs)?;
+    // Every task the log changed, in one batch of syncs.
+    let redo: Vec<usize> = (0..tasks.len())
+        .filter(|i| tasks[*i].ends_changed || changed.binary_search(i).is_ok())
+        .collect();
+    let jobs: Vec<SnapshotJob<'_>> = redo
+        .iter()
+        .map(|&i| {
+            let t = &tasks[i];
+            SnapshotJob {
+                dir: &t.dir,
+                pool: changed.binary_search(&i).is_ok().then_some((
+                    &t.task.pool,
+                    t.task.counters,
+                    t.listed.as_slice(),
+                )),
+                ends: t.ends_changed.then_some(&t.ends),
+            }
+        })
+        .collect();
+    let written = write_snapshots(&jobs, &shared.stats.syncs)?;
+    drop(jobs);
+    for (i, seqs) in redo.into_iter().zip(written) {
+        if let Some(seqs) = seqs {
+            tasks[i].listed = seqs;
+        }
     }
     {
         let mut entries = shared.tasks.lock();

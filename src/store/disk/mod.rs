@@ -284,25 +284,22 @@ impl Shared {
         Ok(())
     }
 
-    /// Writes the task's snapshot with `counters` (at graceful shutdown); empties the log
-    /// once no task's snapshot lags behind it.
-    fn save_counters(&self, id: &str, counters: Counters) -> Result<(), StoreError> {
+    /// What the snapshot of each task lacks, for the tasks whose snapshot lacks changes.
+    fn dirty(&self) -> Vec<(String, entry::DirtyParts)> {
+        self.tasks
+            .lock()
+            .iter()
+            .filter(|(_, e)| e.is_dirty())
+            .map(|(id, e)| (id.clone(), e.dirty_parts()))
+            .collect()
+    }
+
+    /// Writes the snapshot of every task that lacks changes (at graceful shutdown:
+    /// `save_counters` of each task has recorded its final counters) in one batch of
+    /// syncs; empties the log once no task's snapshot lags behind it.
+    fn flush_snapshots(&self) -> Result<(), StoreError> {
         let mut log = self.io.lock();
-        let parts = {
-            let mut tasks = self.tasks.lock();
-            let e = tasks
-                .get_mut(id)
-                .ok_or_else(|| err(&self.tasks_dir(), format!("task {id:?} has no directory")))?;
-            e.counters = counters;
-            let mut parts = e.dirty_parts();
-            // The counters are written when they changed, even if the pool did not; a
-            // task untouched since its snapshot costs nothing (no fsync at shutdown).
-            if parts.pool.is_some() || counters != e.snap_counters {
-                parts.pool = Some((e.pool.clone(), counters, e.snap_seqs.clone()));
-            }
-            parts
-        };
-        parts.write(self, id)?;
+        entry::write_dirty(self, &self.dirty())?;
         let all_clean = self.tasks.lock().values().all(|e| !e.is_dirty());
         if all_clean && log.failed.is_none() {
             writer::truncate(self, &mut log)?;
@@ -423,8 +420,23 @@ impl Store for DiskStore {
         _pool: Arc<Pool>,
         counters: Counters,
     ) -> Result<(), StoreError> {
-        let id = id.to_string();
-        self.run(move |s| s.save_counters(&id, counters)).await
+        // Recorded at once, written with every other task's changes: a shutdown saves
+        // the counters of all tasks at once (`Registry::flush_counters`), and whichever
+        // call runs first writes the snapshots of every task recorded by then in one
+        // batch of syncs; the later calls find theirs written or write the rest.
+        {
+            let shared = &self.inner.shared;
+            let mut tasks = shared.tasks.lock();
+            let e = tasks
+                .get_mut(id)
+                .ok_or_else(|| err(&shared.tasks_dir(), format!("task {id:?} has no directory")))?;
+            e.counters = counters;
+            if !e.is_dirty() {
+                // A task untouched since its snapshot costs nothing (no fsync).
+                return Ok(());
+            }
+        }
+        self.run(Shared::flush_snapshots).await
     }
 }
 

@@ -1,14 +1,16 @@
 //! A task's snapshot: `pool.json` and one file per trajectory, the format-1 layout, and
 //! `ends.json` (SPEC §9's record of ended episodes). The commit log's changes are folded
-//! into it at compaction, at graceful shutdown and after recovery; `pool.json` is the
-//! pool's commit point.
+//! into it at compaction, at graceful shutdown and after recovery, for every task that
+//! lacks them in one batch of syncs; `pool.json` is the pool's commit point.
 
 use std::collections::HashSet;
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use super::codec::{check_format, encode_trajectory, ClientEnds, EndsFile, PoolFile, FILE_FORMAT};
-use super::files::{err, fsync_dir, read_json, traj_path, write_atomic, write_new, Syncs};
+use super::files::{
+    err, fsync_many, read_json, tmp_path, traj_path, write_atomic, write_unsynced, Syncs,
+};
 use crate::core::Pool;
 use crate::store::{Counters, EndedEpisodes, StoreError};
 
@@ -25,47 +27,99 @@ pub(super) fn write_pool_file(
     write_atomic(&path, &bytes, syncs)
 }
 
-/// Makes `pool` (with `counters`) the task's snapshot, given the seqs the current
-/// `pool.json` lists: writes the trajectories it lacks (not referenced yet, so written in
-/// place: a crash leaves only unlisted files, removed at the next start), fsyncs `traj/`,
-/// replaces `pool.json` (the commit point), then removes the files of trajectories that
-/// left (best effort). Returns the seqs the snapshot now lists.
-pub(super) fn write_snapshot(
-    dir: &Path,
-    pool: &Pool,
-    counters: Counters,
-    listed: &[u64],
+/// One task's part of a batch of snapshots ([`write_snapshots`]): its directory, the pool
+/// to snapshot (with its counters and the seqs the current `pool.json` lists), and the
+/// ended episodes to write to `ends.json`.
+pub(super) struct SnapshotJob<'a> {
+    pub dir: &'a Path,
+    pub pool: Option<(&'a Pool, Counters, &'a [u64])>,
+    pub ends: Option<&'a EndedEpisodes>,
+}
+
+/// Makes each job's pool (with its counters) and ended episodes its task's snapshot, with
+/// the syncs of all of them batched: writes every trajectory file a `pool.json` lacks
+/// (not referenced yet, so written in place: a crash leaves only unlisted files, removed
+/// at the next start), fsyncs them and their `traj/` directories together, writes every
+/// `pool.json.tmp` and `ends.json.tmp`, fsyncs them together, renames them over
+/// `pool.json` and `ends.json` (each rename a task's commit point) and fsyncs the task
+/// directories together; then removes the files of trajectories that left (best effort).
+/// Returns, per job, the seqs its `pool.json` now lists (`None` for a job without pool).
+pub(super) fn write_snapshots(
+    jobs: &[SnapshotJob<'_>],
     syncs: &Syncs,
-) -> Result<Vec<u64>, StoreError> {
-    let old: HashSet<u64> = listed.iter().copied().collect();
-    let new: HashSet<u64> = pool.seqs().iter().copied().collect();
-    let mut wrote = false;
-    for t in pool.trajectories().iter().filter(|t| !old.contains(&t.seq)) {
-        write_new(&traj_path(dir, t.seq), &encode_trajectory(t), syncs)?;
-        wrote = true;
-    }
-    if wrote {
-        fsync_dir(&dir.join("traj"), syncs)?;
-    }
-    write_pool_file(dir, pool, counters, syncs)?;
-    for seq in old.difference(&new) {
-        let path = traj_path(dir, *seq);
-        if let Err(e) = fs::remove_file(&path) {
-            tracing::warn!(file = %path.display(), error = %e, "could not remove a superseded trajectory file; it is removed at the next start");
+) -> Result<Vec<Option<Vec<u64>>>, StoreError> {
+    let mut files = Vec::new();
+    let mut traj_dirs = Vec::new();
+    for (dir, pool, listed) in jobs
+        .iter()
+        .filter_map(|j| j.pool.map(|(p, _, l)| (j.dir, p, l)))
+    {
+        let old: HashSet<u64> = listed.iter().copied().collect();
+        let before = files.len();
+        for t in pool.trajectories().iter().filter(|t| !old.contains(&t.seq)) {
+            let path = traj_path(dir, t.seq);
+            write_unsynced(&path, &encode_trajectory(t))?;
+            files.push(path);
+        }
+        if files.len() > before {
+            traj_dirs.push(dir.join("traj"));
         }
     }
-    Ok(pool.seqs().to_vec())
+    fsync_many(&files, syncs)?;
+    fsync_many(&traj_dirs, syncs)?;
+    let mut renames = Vec::new();
+    for j in jobs {
+        if let Some((pool, counters, _)) = j.pool {
+            let path = j.dir.join("pool.json");
+            let bytes = serde_json::to_vec_pretty(&PoolFile::new(pool, counters))
+                .map_err(|e| err(&path, e))?;
+            renames.push((path, bytes));
+        }
+        if let Some(ends) = j.ends {
+            let path = j.dir.join(ENDS_FILE);
+            let bytes = ends_bytes(&path, ends)?;
+            renames.push((path, bytes));
+        }
+    }
+    let tmps: Vec<PathBuf> = renames
+        .iter()
+        .map(|(path, bytes)| {
+            let tmp = tmp_path(path);
+            write_unsynced(&tmp, bytes).map(|()| tmp)
+        })
+        .collect::<Result<_, _>>()?;
+    fsync_many(&tmps, syncs)?;
+    for (tmp, (path, _)) in tmps.iter().zip(&renames) {
+        fs::rename(tmp, path).map_err(|e| err(path, format!("write: {e}")))?;
+    }
+    let task_dirs: Vec<PathBuf> = jobs
+        .iter()
+        .filter(|j| j.pool.is_some() || j.ends.is_some())
+        .map(|j| j.dir.to_path_buf())
+        .collect();
+    fsync_many(&task_dirs, syncs)?;
+    let mut out = Vec::with_capacity(jobs.len());
+    for j in jobs {
+        let Some((pool, _, listed)) = j.pool else {
+            out.push(None);
+            continue;
+        };
+        let new: HashSet<u64> = pool.seqs().iter().copied().collect();
+        for seq in listed.iter().filter(|s| !new.contains(s)) {
+            let path = traj_path(j.dir, *seq);
+            if let Err(e) = fs::remove_file(&path) {
+                tracing::warn!(file = %path.display(), error = %e, "could not remove a superseded trajectory file; it is removed at the next start");
+            }
+        }
+        out.push(Some(pool.seqs().to_vec()));
+    }
+    Ok(out)
 }
 
 const ENDS_FILE: &str = "ends.json";
 
-/// Writes `ends.json` atomically.
-pub(super) fn write_ends_file(
-    dir: &Path,
-    ends: &EndedEpisodes,
-    syncs: &Syncs,
-) -> Result<(), StoreError> {
-    let path = dir.join(ENDS_FILE);
+/// The bytes of `ends.json` (at `path`) holding `ends`.
+fn ends_bytes(path: &Path, ends: &EndedEpisodes) -> Result<Vec<u8>, StoreError> {
     let file = EndsFile {
         format: FILE_FORMAT,
         clients: ends
@@ -76,8 +130,7 @@ pub(super) fn write_ends_file(
             })
             .collect(),
     };
-    let bytes = serde_json::to_vec(&file).map_err(|e| err(&path, e))?;
-    write_atomic(&path, &bytes, syncs)
+    serde_json::to_vec(&file).map_err(|e| err(path, e))
 }
 
 /// Reads `ends.json`; none recorded if it does not exist.

@@ -19,6 +19,7 @@ use std::thread::JoinHandle;
 
 use tokio::sync::oneshot;
 
+use super::entry::write_dirty;
 use super::files::{err, Syncs};
 use super::log::{encode_group, HEADER_LEN};
 use super::Shared;
@@ -335,18 +336,10 @@ fn recover(log: &mut Log) {
     }
 }
 
-/// Snapshots every task whose pool is newer than its snapshot, then empties the log.
+/// Snapshots every task whose pool, counters or ended episodes are newer than its
+/// snapshot (one batch of syncs), then empties the log.
 pub(super) fn checkpoint(shared: &Shared, log: &mut Log) -> Result<(), StoreError> {
-    let dirty: Vec<_> = shared
-        .tasks
-        .lock()
-        .iter()
-        .filter(|(_, e)| e.is_dirty())
-        .map(|(id, e)| (id.clone(), e.dirty_parts()))
-        .collect();
-    for (id, parts) in dirty {
-        parts.write(shared, &id)?;
-    }
+    write_dirty(shared, &shared.dirty())?;
     truncate(shared, log)
 }
 
