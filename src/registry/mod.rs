@@ -388,9 +388,8 @@ impl Registry {
         Ok(())
     }
 
-    /// Persists every task's counters (at graceful shutdown), all tasks at once: a store
-    /// may then write them together (the data dir syncs every task's snapshot in one
-    /// batch instead of one task after another).
+    /// Persists every task's counters (at graceful shutdown), all at once: the data dir
+    /// syncs their snapshots in one batch.
     pub async fn flush_counters(&self) {
         let tasks = self.all();
         let flushes = tasks.iter().map(|task| async move {
