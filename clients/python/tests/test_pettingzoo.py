@@ -519,6 +519,66 @@ def test_reset_mid_episode_abandons(client: Any, prefix: str) -> None:
     env.close()
 
 
+class VanishingAEC(RandomAEC):
+    """RandomAEC whose last agent is taken out of ``agents`` after ``vanish_at`` turns
+    without a termination or truncation (as some envs remove a captured piece)."""
+
+    vanish_at = 4
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
+        super().reset(seed, options)
+        # Everybody from the start, nobody ends: the only way out is the removal.
+        self._end[:] = 10_000
+        for a in self.possible_agents[len(self.agents) :]:
+            self.agents.append(a)
+            self.rewards[a] = self._cumulative_rewards[a] = 0.0
+            self.terminations[a] = self.truncations[a] = False
+            self.infos[a] = {}
+
+    def step(self, action: Any) -> None:
+        super().step(action)
+        gone = self.possible_agents[-1]
+        if self.turn >= self.vanish_at and gone in self.agents and len(self.agents) > 1:
+            self.agents.remove(gone)
+            for table in (
+                self.rewards,
+                self._cumulative_rewards,
+                self.terminations,
+                self.truncations,
+                self.infos,
+            ):
+                table.pop(gone, None)
+            if self.agent_selection == gone:
+                self.agent_selection = self.agents[0]
+
+
+def test_aec_agent_removed_without_an_end_abandons_its_episode(client: Any, prefix: str) -> None:
+    """An agent the env removes without ending it stores nothing: its episode is
+    abandoned (SPEC §12), the other agents go on being shaped."""
+    raw = VanishingAEC(2, 3, 0)
+    ids = [f"{prefix}/{a}" for a in raw.possible_agents]
+    _make_tasks(client, ids, 3, 0)
+    env = ShapedAEC(raw, client, lambda agent: f"{prefix}/{agent}")
+    env.reset(seed=0)
+    gone = raw.possible_agents[-1]
+    assert gone in env.agents
+    turns = 0
+    while gone in env.agents or turns < 2 * raw.vanish_at:
+        env.step(0)
+        turns += 1
+        assert turns < 50
+    assert gone not in env.agents
+    session = env.sessions[f"{prefix}/{gone}"]
+    assert not session.episodes_in_progress.any(), "the removed agent's episode is abandoned"
+    stats = client.get_task(f"{prefix}/{gone}").stats
+    assert stats.episodes_completed == 0
+    assert stats.pool_size == 0
+    # The agent left goes on, shaped.
+    _, _, _, _, info = env.last()
+    assert set(INFO_KEYS) <= set(info)
+    env.close()
+
+
 def test_close_closes_the_sessions_it_opened(client: Any, prefix: str) -> None:
     _make_tasks(client, [f"{prefix}/a", f"{prefix}/b"], 3, 0)
     env = ShapedAEC(RandomAEC(2), client, lambda a: f"{prefix}/{'a' if a == 'a0' else 'b'}")
