@@ -332,10 +332,17 @@ impl TaskHandle {
         self.publish_if(pool, |new, published| new < published);
     }
 
-    /// On a shared store that announced a version below the published one: once no
-    /// commit of this server is in flight (a notice older than this server's own commit
-    /// is no news), loads the store's pool and follows it if it is still behind.
+    /// On a shared store that announced a version below the published one: follows the
+    /// store's pool if it is behind once no commit of this server is in flight. A notice
+    /// older than this server's own commit is usually late news only (the store is never
+    /// behind what was published unless it lost changes), so the store is read first
+    /// without holding up commits, and again under the writer lock only if it looks
+    /// behind.
     pub async fn follow_store_back(&self) -> Result<(), StoreError> {
+        match self.store.load_pool(&self.key).await? {
+            Some(pool) if pool.version() < self.published_version() => {}
+            _ => return Ok(()),
+        }
         let _writer = self.quiet().await;
         if let Some(pool) = self.store.load_pool(&self.key).await? {
             if pool.version() < self.published_version() {
