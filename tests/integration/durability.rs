@@ -103,7 +103,7 @@ fn free_port() -> u16 {
         .port()
 }
 
-fn copy_dir(src: &Path, dst: &Path) {
+pub(crate) fn copy_dir(src: &Path, dst: &Path) {
     std::fs::create_dir_all(dst).unwrap();
     for entry in std::fs::read_dir(src).unwrap() {
         let entry = entry.unwrap();
@@ -145,7 +145,7 @@ fn settings(dir: &Path) -> Settings {
 }
 
 /// Every task (full protos, stats included) and every pool.
-async fn snapshot(c: &mut Client) -> (Vec<proto::Task>, Vec<proto::Pool>) {
+pub(crate) async fn snapshot(c: &mut Client) -> (Vec<proto::Task>, Vec<proto::Pool>) {
     let tasks = c
         .list_tasks(proto::ListTasksRequest {})
         .await
@@ -160,7 +160,7 @@ async fn snapshot(c: &mut Client) -> (Vec<proto::Task>, Vec<proto::Pool>) {
 }
 
 /// Protos compare floats with ==, where -0.0 == 0.0: also compare every float bit for bit.
-fn assert_bit_exact(a: &[proto::Pool], b: &[proto::Pool]) {
+pub(crate) fn assert_bit_exact(a: &[proto::Pool], b: &[proto::Pool]) {
     assert_eq!(a, b);
     for (pa, pb) in a.iter().zip(b) {
         for (ta, tb) in pa.trajectories.iter().zip(&pb.trajectories) {
@@ -171,7 +171,7 @@ fn assert_bit_exact(a: &[proto::Pool], b: &[proto::Pool]) {
     }
 }
 
-fn assert_configs_bit_exact(a: &[proto::Task], b: &[proto::Task]) {
+pub(crate) fn assert_configs_bit_exact(a: &[proto::Task], b: &[proto::Task]) {
     assert_eq!(a.len(), b.len());
     for (ta, tb) in a.iter().zip(b) {
         let (ca, cb) = (ta.config.unwrap(), tb.config.unwrap());
@@ -201,7 +201,7 @@ const ODD_FLOATS: [f32; 9] = [
 /// Creates a varied state: discrete and continuous tasks, odd floats, replacements, a
 /// reset pool, an empty task, counters from a stream. Returns the number of seqs assigned
 /// per task (the next seq is that + 1).
-async fn populate(c: &mut Client) -> Vec<(String, u64)> {
+pub(crate) async fn populate(c: &mut Client) -> Vec<(String, u64)> {
     let mut d = discrete(4, 3, 2, 0, 1);
     d.max_trajectory_len = Some(5);
     d.alpha = Some(0.1 + 0.2);

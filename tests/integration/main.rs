@@ -14,6 +14,7 @@ mod follow;
 mod group_commit;
 mod limits;
 mod metrics;
+mod migration;
 mod quotas;
 mod redis;
 mod redis_pool_rule;
