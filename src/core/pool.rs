@@ -190,12 +190,15 @@ impl Pool {
     }
 
     fn recompute(&mut self) {
-        self.recompute_derived();
+        self.recompute_derived(None);
         self.build_by_step();
     }
 
-    /// Everything derived from the trajectories but the by-step layout.
-    fn recompute_derived(&mut self) {
+    /// Everything derived from the trajectories but the by-step layout. `order`, if
+    /// given, lists every trajectory (index) once, in an order close to the new one (the
+    /// previous pool's, with the change applied): the sort then costs O(|D|) instead of
+    /// O(|D| log |D|). The result does not depend on it: the order sorted by is total.
+    fn recompute_derived(&mut self, order: Option<Vec<usize>>) {
         self.seqs = self.trajectories.iter().map(|t| t.seq).collect();
         self.lens = self.trajectories.iter().map(|t| t.actions.len()).collect();
         self.l_min = self.lens.iter().copied().min().unwrap_or(0);
@@ -215,8 +218,12 @@ impl Pool {
                 }
             })
             .collect();
-        let mut idx: Vec<usize> = (0..self.xs.len()).collect();
-        idx.sort_unstable_by(|&a, &b| {
+        let mut idx: Vec<usize> = order
+            .filter(|o| o.len() == self.xs.len())
+            .unwrap_or_else(|| (0..self.xs.len()).collect());
+        // Stable (runs are merged, so a nearly sorted order sorts in linear time); with
+        // seqs unique, any sort gives the same order.
+        idx.sort_by(|&a, &b| {
             self.xs[b]
                 .total_cmp(&self.xs[a])
                 .then_with(|| self.seqs[a].cmp(&self.seqs[b]))
@@ -424,10 +431,22 @@ impl Pool {
                     .trajectories
                     .last()
                     .is_none_or(|t| t.seq < trajectory.seq);
+                // The previous order without the one removed, the new one last.
+                let order = last.then(|| {
+                    let mut o: Vec<usize> = self
+                        .by_place
+                        .iter()
+                        .map(|&i| i as usize)
+                        .filter(|&i| Some(i) != removed)
+                        .map(|i| i - usize::from(removed.is_some_and(|r| i > r)))
+                        .collect();
+                    o.push(self.trajectories.len());
+                    o
+                });
                 self.trajectories.push(trajectory.clone());
                 self.trajectories.sort_by_key(|t| t.seq);
                 self.version += 1;
-                self.recompute_derived();
+                self.recompute_derived(order);
                 let old = std::mem::take(&mut self.by_step);
                 if !lay_out {
                     self.step_rows = 0;
