@@ -1,7 +1,7 @@
-//! The `tamrm` binary: `tamrm serve` and `tamrm healthcheck`.
+//! The `tamrm` binary: `tamrm serve`, `tamrm healthcheck`, `tamrm key` and `tamrm compact`.
 
 use clap::Parser;
-use tamrm::settings::{Cli, Command, HealthcheckArgs, KeyArgs, Settings};
+use tamrm::settings::{Cli, Command, CompactArgs, HealthcheckArgs, KeyArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
 #[cfg(feature = "mimalloc")]
@@ -21,6 +21,7 @@ fn main() -> std::process::ExitCode {
         Command::Serve(args) => args,
         Command::Healthcheck(h) => return healthcheck(&h),
         Command::Key(k) => return key(&k),
+        Command::Compact(c) => return compact(&c),
     };
     let settings = match Settings::resolve(&args) {
         Ok(s) => s,
@@ -135,6 +136,36 @@ fn key(args: &KeyArgs) -> std::process::ExitCode {
         tamrm::auth::hash_key(key.as_bytes())
     );
     std::process::ExitCode::SUCCESS
+}
+
+/// `tamrm compact`: the data dir's commit log folded into its snapshots.
+fn compact(args: &CompactArgs) -> std::process::ExitCode {
+    let dir = &args.data_dir;
+    let done = (|| -> Result<usize, String> {
+        let store = tamrm::store::DiskStore::open(dir).map_err(|e| e.to_string())?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .map_err(|e| format!("cannot start the async runtime: {e}"))?;
+        runtime
+            .block_on(async {
+                let tasks = tamrm::store::Store::load(&store).await?.len();
+                store.compact().await.map(|()| tasks)
+            })
+            .map_err(|e| e.to_string())
+    })();
+    match done {
+        Ok(tasks) => {
+            println!(
+                "compacted {}: {tasks} task(s), every change in the snapshots, commits.log empty",
+                dir.display()
+            );
+            std::process::ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("cannot compact {}: {e}", dir.display());
+            std::process::ExitCode::FAILURE
+        }
+    }
 }
 
 async fn wait_for_signal() {

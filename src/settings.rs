@@ -35,6 +35,18 @@ pub enum Command {
     /// Make a new random API key, or hash a given one: prints the key (once) and the
     /// `[[keys]]` entry for the `--api-keys` file, which holds only its SHA-256.
     Key(KeyArgs),
+    /// Fold a stopped server's commit log into its snapshots (storage.md, "Versioning"):
+    /// needed before opening the data dir with a build of format 2, and otherwise
+    /// never (a running server compacts when its log passes 64 MiB).
+    Compact(CompactArgs),
+}
+
+/// Flags of `tamrm compact`.
+#[derive(Debug, Clone, Args)]
+pub struct CompactArgs {
+    /// The data dir (the server using it must be stopped: it holds the dir's lock).
+    #[arg(long, env = "TAMRM_DATA_DIR")]
+    pub data_dir: std::path::PathBuf,
 }
 
 /// Flags of `tamrm key`.

@@ -108,12 +108,13 @@ pub fn disk_template() -> &'static [(PathBuf, Vec<u8>)] {
     T.get_or_init(|| {
         let dir = tempfile::tempdir().expect("a temp dir");
         crate::runtime().block_on(async {
-            // A first server: tasks created, episodes committed, then restarted so that
-            // the log is folded into snapshots.
+            // A first server: tasks created, episodes committed, then its log folded
+            // into snapshots (as a compaction does).
             {
                 let store = Arc::new(DiskStore::open(dir.path()).expect("open"));
-                let mut h = Harness::with_store(store).await;
+                let mut h = Harness::with_store(store.clone()).await;
                 write_history(&mut h, 0).await;
+                store.compact().await.expect("compact");
             }
             // A second one: its changes stay in the log (as after a kill -9).
             let store = Arc::new(DiskStore::open(dir.path()).expect("reopen"));

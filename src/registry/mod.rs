@@ -107,9 +107,8 @@ impl Registry {
         &self.limits
     }
 
-    /// Reserves `bytes` (a stream's reckoning, see `max_stream_bytes`) out of the
-    /// server's budget for open streams, `max_total_stream_bytes`; the reservation ends
-    /// when the returned value is dropped.
+    /// Reserves `bytes` (a stream's reckoning, `max_stream_bytes`) out of the server's
+    /// budget for open streams, `max_total_stream_bytes`, until the value is dropped.
     pub fn reserve_stream_bytes(&self, bytes: u64) -> Result<StreamBytes, Error> {
         let max = self.limits.max_total_stream_bytes;
         self.stream_bytes
@@ -133,8 +132,7 @@ impl Registry {
         self.stream_bytes.load(Ordering::Relaxed)
     }
 
-    /// The syncs the store issued since it was opened (a data dir's; see
-    /// [`Store::syncs`]).
+    /// The syncs the store issued since it was opened ([`Store::syncs`]).
     pub fn store_syncs(&self) -> Option<u64> {
         self.store.syncs()
     }
@@ -275,8 +273,7 @@ impl Registry {
         Ok(entry.or_insert(handle).clone())
     }
 
-    /// With a store shared with other servers: loads the tasks other servers created and
-    /// forgets those they deleted, so that a listing is the store's.
+    /// With a shared store: loads the tasks others created, forgets those they deleted.
     async fn sync_with_store(&self) -> Result<(), Error> {
         let Some(keys) = self.store.task_ids().await? else {
             return Ok(());
@@ -369,8 +366,7 @@ impl Registry {
         v
     }
 
-    /// Deletes `tenant`'s task `id`; its open streams fail with NOT_FOUND at their next
-    /// batch.
+    /// Deletes `tenant`'s task `id`; its open streams fail with NOT_FOUND at their next batch.
     pub async fn delete(&self, tenant: &str, id: &str) -> Result<(), Error> {
         let _admin = self.admin.lock().await;
         let handle = self.lookup(tenant, id).await?;
@@ -388,8 +384,12 @@ impl Registry {
         Ok(())
     }
 
-    /// Persists every task's counters (at graceful shutdown), all at once: the data dir
-    /// syncs their snapshots in one batch.
+    /// The server is stopping: the store may cut background work short.
+    pub fn stopping(&self) {
+        self.store.stopping();
+    }
+
+    /// Persists every task's counters at once (a data dir logs them in one group).
     pub async fn flush_counters(&self) {
         let tasks = self.all();
         let flushes = tasks.iter().map(|task| async move {

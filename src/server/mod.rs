@@ -86,6 +86,8 @@ impl RunningServer {
     /// end with UNAVAILABLE), waits up to the grace period, and persists counters.
     pub async fn shutdown(self) {
         self.shutdown.cancel();
+        // A compaction in progress would hold up the last batches' commits.
+        self.registry.stopping();
         match tokio::time::timeout(self.grace, self.serve).await {
             Ok(Ok(Ok(()))) => {}
             Ok(Ok(Err(e))) => tracing::error!(error = %e, "server error during shutdown"),

@@ -223,6 +223,11 @@ pub trait Store: Send + Sync + 'static {
         };
         Ok(GroupCommitted { committed, resent })
     }
+    /// The server is stopping (and will then save every task's counters, and close the
+    /// store): a store may cut background work short. The data dir abandons a
+    /// compaction in progress and starts no other (its log holds every change), so that
+    /// a stop never waits for snapshots to be written.
+    fn stopping(&self) {}
     /// Persists the counters without a pool change.
     async fn save_counters(
         &self,

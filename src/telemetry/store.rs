@@ -75,6 +75,10 @@ impl Store for MeteredStore {
         Ok(done)
     }
 
+    fn stopping(&self) {
+        self.inner.stopping()
+    }
+
     async fn save_counters(
         &self,
         id: &str,

@@ -499,6 +499,10 @@ async fn base_data_dir(dir: &Path) {
         assert!(add(&mut c, "t", dtraj(a, s)).await.inserted);
     }
     server.shutdown().await;
+    // Into the snapshot: the tests below break its files.
+    let store = tamrm::store::DiskStore::open(dir).unwrap();
+    tamrm::store::Store::load(&store).await.unwrap();
+    store.compact().await.unwrap();
 }
 
 /// `tamrm serve` exits non-zero naming `file`, and `tamrm::server::start` returns an error

@@ -147,6 +147,32 @@ async fn a_format2_data_dir_restores_what_its_release_restored() {
     let (t, p) = snapshot(&mut c).await;
     assert_eq!(t, tasks);
     assert_bit_exact(&pools, &p);
+    // `tamrm compact` refuses a data dir in use, and folds a stopped server's log into
+    // the snapshots (the way back to a format-2 build), keeping everything.
+    let compact = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_tamrm"))
+            .args(["compact", "--data-dir", arg])
+            .output()
+            .unwrap()
+    };
+    let busy = compact();
+    assert!(!busy.status.success());
+    assert!(String::from_utf8_lossy(&busy.stderr).contains("in use"));
+    drop(c);
+    assert!(bin.terminate().0.success());
+    let log = data.join("commits.log");
+    assert!(
+        std::fs::metadata(&log).unwrap().len() > 12,
+        "a stop keeps the log"
+    );
+    let done = compact();
+    assert!(done.status.success(), "{done:?}");
+    assert_eq!(std::fs::metadata(&log).unwrap().len(), 12, "compacted");
+    let bin = Binary::start(&["--data-dir", arg]);
+    let mut c = connect(bin.addr).await;
+    let (t, p) = snapshot(&mut c).await;
+    assert_eq!(t, tasks);
+    assert_bit_exact(&pools, &p);
     drop(c);
     assert!(bin.terminate().0.success());
 }

@@ -10,11 +10,15 @@ use crate::core::{ActionCount, ActionSeq, Pool, TaskConfig, Trajectory};
 use crate::store::Counters;
 
 /// Version of the data dir's layout, in `DATA_DIR/tamrm.json`: 2 since pool changes go
-/// to the commit log (`commits.log`); a format-1 dir is migrated at open (it is a format-2
-/// dir with an empty log).
-pub const FORMAT_VERSION: u32 = 2;
-/// The previous data dir format, still opened (and migrated).
+/// to the commit log (`commits.log`), 3 since a graceful stop logs counters (kind-3
+/// records) and leaves the log to the next start instead of writing snapshots. Older
+/// dirs are migrated at open: a format-1 dir is a format-3 dir with an empty log, a
+/// format-2 dir one whose log has no kind-3 records.
+pub const FORMAT_VERSION: u32 = 3;
+/// The first data dir format, still opened (and migrated).
 pub(super) const FORMAT_V1: u32 = 1;
+/// The second data dir format, still opened (and migrated).
+pub(super) const FORMAT_V2: u32 = 2;
 /// Version of `task.json`, `pool.json` and the trajectory files (unchanged by format 2).
 pub(super) const FILE_FORMAT: u32 = 1;
 
@@ -93,12 +97,12 @@ pub(super) fn check_format(format: u32) -> Result<(), String> {
     Ok(())
 }
 
-/// The data dir format in `tamrm.json` is one this build opens (the current one, or
-/// format 1, which it migrates).
+/// The data dir format in `tamrm.json` is one this build opens (the current one, or an
+/// older one, which it migrates).
 pub(super) fn check_root_format(format: u32) -> Result<(), String> {
-    if format != FORMAT_VERSION && format != FORMAT_V1 {
+    if ![FORMAT_V1, FORMAT_V2, FORMAT_VERSION].contains(&format) {
         return Err(format!(
-            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION}, and {FORMAT_V1} which it migrates)"
+            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION}, and {FORMAT_V1} and {FORMAT_V2} which it migrates)"
         ));
     }
     Ok(())

@@ -4,7 +4,7 @@
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use super::codec::{check_root_format, RootFile, FORMAT_V1, FORMAT_VERSION};
+use super::codec::{check_root_format, RootFile, FORMAT_V1, FORMAT_V2, FORMAT_VERSION};
 use super::files::{err, read_json, remove_tmp_files, write_atomic};
 use super::writer::Stats;
 use super::{checked, log, LOG_FILE};
@@ -40,13 +40,13 @@ pub(super) fn open_dir(root: &Path, stats: &Stats) -> Result<OpenedDir, StoreErr
     };
     let log_path = root.join(LOG_FILE);
     if !log_path.exists() {
-        if found == Some(FORMAT_VERSION) {
+        if found.is_some_and(|f| f >= FORMAT_V2) {
             return Err(err(
                 &log_path,
-                "missing: a format-2 data dir keeps the pool changes since the last snapshots in it; restore it, or move the data dir aside",
+                "missing: a data dir of format 2 or later keeps the pool changes since the last snapshots in it; restore it, or move the data dir aside",
             ));
         }
-        // Created before the marker names format 2, so a format-2 dir always has one.
+        // Created before the marker names a format with a log, so such a dir always has one.
         write_atomic(&log_path, &log::header(), &stats.syncs)?;
     }
     if found != Some(FORMAT_VERSION) {
@@ -55,8 +55,14 @@ pub(super) fn open_dir(root: &Path, stats: &Stats) -> Result<OpenedDir, StoreErr
         })
         .map_err(|e| err(&marker, e))?;
         write_atomic(&marker, &bytes, &stats.syncs)?;
-        if found == Some(FORMAT_V1) {
-            tracing::info!(dir = %root.display(), "migrated the data dir from format 1 to format 2 (an empty commit log added)");
+        match found {
+            Some(FORMAT_V1) => {
+                tracing::info!(dir = %root.display(), "migrated the data dir from format 1 to format {FORMAT_VERSION} (an empty commit log added)");
+            }
+            Some(FORMAT_V2) => {
+                tracing::info!(dir = %root.display(), "migrated the data dir from format 2 to format {FORMAT_VERSION} (graceful stops now leave the commit log to the next start; an older build cannot open it)");
+            }
+            _ => {}
         }
     }
     let file = fs::OpenOptions::new()

@@ -21,6 +21,9 @@ pub(super) struct Entry {
     pub(super) snap_version: u64,
     /// The counters `pool.json` holds.
     pub(super) snap_counters: Counters,
+    /// The latest counters durable in the snapshot or the log (a graceful stop logs
+    /// `counters` when they are newer).
+    pub(super) durable_counters: Counters,
     /// The seqs `pool.json` lists (their trajectory files exist).
     pub(super) snap_seqs: Vec<u64>,
     /// The episode ends committed per client (SPEC §9): `ends.json` and the log's
@@ -44,11 +47,39 @@ impl Entry {
             dir,
             snap_version: pool.version(),
             snap_counters: counters,
+            durable_counters: counters,
             pool,
             counters,
             snap_seqs,
             ends,
             ends_gen: 0,
+            ends_saved: 0,
+        }
+    }
+
+    /// A task restored at start: its snapshot (`snap`, the seqs `pool.json` lists), then
+    /// the log replayed over it (`pool`, `counters`, and `ends` with `ends_logged` when
+    /// the log added to what `ends.json` holds). What the snapshot lacks stays in the
+    /// log until the next compaction.
+    pub(super) fn restored(
+        dir: PathBuf,
+        snap: (u64, Counters, Vec<u64>),
+        pool: Arc<Pool>,
+        counters: Counters,
+        ends: EndedEpisodes,
+        ends_logged: bool,
+    ) -> Entry {
+        let (snap_version, snap_counters, snap_seqs) = snap;
+        Entry {
+            dir,
+            pool,
+            counters,
+            snap_version,
+            snap_counters,
+            durable_counters: counters,
+            snap_seqs,
+            ends,
+            ends_gen: u64::from(ends_logged),
             ends_saved: 0,
         }
     }
@@ -116,7 +147,7 @@ pub(super) fn write_dirty(
             ends: p.ends.as_ref().map(|(ends, _)| ends),
         })
         .collect();
-    let seqs = write_snapshots(&jobs, &shared.stats.syncs)?;
+    let seqs = write_snapshots(&jobs, &shared.stats.syncs, &shared.stopping)?;
     let mut tasks = shared.tasks.lock();
     for ((id, parts), seqs) in dirty.iter().zip(seqs) {
         let Some(e) = tasks.get_mut(id) else { continue };

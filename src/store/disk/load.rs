@@ -1,11 +1,16 @@
 //! Start-up: read every task's snapshot (cleaning up unfinished changes), replay the
-//! commit log over the snapshots, fold the result into new snapshots and empty the log.
+//! commit log over the snapshots, cut a torn last group off the log and keep the rest:
+//! no snapshot is written, so a start costs reading the snapshots and at most the log's
+//! size limit of records, however many changes the log holds. The next compaction folds
+//! the log into snapshots.
 //!
 //! Replay rules per record (docs/storage.md): a record of a task without a directory is
 //! ignored (the task was deleted, or moved out of `tasks/` by an operator); a pool change
 //! whose version the snapshot already has is skipped; one that continues the task's
 //! version is applied; one that leaves a gap is corruption. Records of ended episodes
-//! are merged into the task's `ends.json` (counts only grow, so any order is right). A
+//! are merged with the task's `ends.json` (counts only grow, so any order is right), and
+//! so are records of counters (each counter the larger of the two), whose version must
+//! not be past the task's. A
 //! torn last group is dropped; anything else that fails its checks is corruption,
 //! reported naming the log file.
 
@@ -17,8 +22,8 @@ use std::sync::Arc;
 use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
 use super::files::{err, fsync_dir, read_json, remove_tmp_files, traj_path};
 use super::log::{scan, Record, Scan};
-use super::snapshot::{read_ends_file, write_snapshots, SnapshotJob};
-use super::writer::{truncate, Log};
+use super::snapshot::read_ends_file;
+use super::writer::Log;
 use super::{checked, Entry, Shared, CREATING, DELETING};
 use crate::core::{Pool, Trajectory};
 use crate::store::{Counters, EndedEpisodes, StoreError, StoredTask};
@@ -29,6 +34,8 @@ struct Loaded {
     dir: PathBuf,
     /// The seqs `pool.json` lists.
     listed: Vec<u64>,
+    /// The pool version and counters `pool.json` holds.
+    snap: (u64, Counters),
     /// `ends.json`, then the log's records of ended episodes merged in.
     ends: EndedEpisodes,
     /// The log added to `ends`.
@@ -114,11 +121,13 @@ fn load_snapshots(shared: &Shared) -> Result<Vec<Loaded>, StoreError> {
             ));
         }
         let listed = task.pool.seqs().to_vec();
+        let snap = (task.pool.version(), task.counters);
         let ends = read_ends_file(&path)?;
         out.push(Loaded {
             task,
             dir: path,
             listed,
+            snap,
             ends,
             ends_changed: false,
         });
@@ -188,6 +197,26 @@ fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, 
                     t.ends_changed = true;
                     continue;
                 }
+                Record::Counters(c) => {
+                    let task = &tasks[i].task;
+                    let st = states
+                        .entry(i)
+                        .or_insert_with(|| Replaying::new(&task.pool, task.counters));
+                    if c.version > st.version {
+                        return Err(at(format!(
+                            "counters at version {}, but the task is at version {}: a change is missing",
+                            c.version, st.version
+                        )));
+                    }
+                    st.counters = Counters {
+                        episodes_completed: st
+                            .counters
+                            .episodes_completed
+                            .max(c.counters.episodes_completed),
+                        steps_shaped: st.counters.steps_shaped.max(c.counters.steps_shaped),
+                    };
+                    continue;
+                }
             };
             let task = &tasks[i].task;
             let st = states
@@ -231,6 +260,10 @@ fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, 
     let mut changed = Vec::new();
     for (i, st) in states {
         let t = &mut tasks[i].task;
+        if st.counters != t.counters {
+            t.counters = st.counters;
+            changed.push(i);
+        }
         if st.version == t.pool.version() {
             continue;
         }
@@ -247,52 +280,33 @@ fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, 
             st.next_seq,
         )
         .map_err(|m| err(path, format!("task {:?} after replay: {m}", t.id)))?;
-        t.counters = st.counters;
         changed.push(i);
     }
     changed.sort_unstable();
+    changed.dedup();
     Ok(changed)
 }
 
-/// Loads every task: snapshots, then the log replayed over them, folded into new
-/// snapshots; the log is then emptied (dropping a torn tail with it).
+/// Loads every task: snapshots, then the log replayed over them. The log is kept (its
+/// torn last group, if any, cut off and the cut synced), and appended to from its end.
 pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, StoreError> {
     let mut tasks = load_snapshots(shared)?;
     let bytes = fs::read(&log.path).map_err(|e| err(&log.path, format!("read: {e}")))?;
     let scan = checked(&log.path, scan(&bytes))?;
-    if let Some((offset, len, why)) = &scan.torn {
-        tracing::warn!(log = %log.path.display(), offset, bytes = len, problem = %why, "dropping the incomplete last group of the commit log (a write interrupted by a crash, never acknowledged)");
-    }
     let changed = replay(&log.path, &scan, &mut tasks)?;
     let records: usize = scan.groups.iter().map(|g| g.records.len()).sum();
     if records > 0 {
         tracing::info!(log = %log.path.display(), groups = scan.groups.len(), records, tasks_changed = changed.len(), "replayed the commit log");
     }
-    // Every task the log changed, in one batch of syncs.
-    let redo: Vec<usize> = (0..tasks.len())
-        .filter(|i| tasks[*i].ends_changed || changed.binary_search(i).is_ok())
-        .collect();
-    let jobs: Vec<SnapshotJob<'_>> = redo
-        .iter()
-        .map(|&i| {
-            let t = &tasks[i];
-            SnapshotJob {
-                dir: &t.dir,
-                pool: changed.binary_search(&i).is_ok().then_some((
-                    &t.task.pool,
-                    t.task.counters,
-                    t.listed.as_slice(),
-                )),
-                ends: t.ends_changed.then_some(&t.ends),
-            }
-        })
-        .collect();
-    let written = write_snapshots(&jobs, &shared.stats.syncs)?;
-    drop(jobs);
-    for (i, seqs) in redo.into_iter().zip(written) {
-        if let Some(seqs) = seqs {
-            tasks[i].listed = seqs;
-        }
+    let mut end = bytes.len() as u64;
+    if let Some((offset, len, why)) = &scan.torn {
+        tracing::warn!(log = %log.path.display(), offset, bytes = len, problem = %why, "dropping the incomplete last group of the commit log (a write interrupted by a crash, never acknowledged)");
+        shared.stats.syncs.add();
+        log.file
+            .set_len(*offset)
+            .and_then(|()| log.file.sync_all())
+            .map_err(|e| err(&log.path, format!("cut the torn last group off: {e}")))?;
+        end = *offset;
     }
     {
         let mut entries = shared.tasks.lock();
@@ -300,18 +314,24 @@ pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, St
         for t in &tasks {
             entries.insert(
                 t.task.id.clone(),
-                Entry::new(
+                Entry::restored(
                     t.dir.clone(),
+                    (t.snap.0, t.snap.1, t.listed.clone()),
                     Arc::new(t.task.pool.clone()),
                     t.task.counters,
-                    t.listed.clone(),
                     t.ends.clone(),
+                    t.ends_changed,
                 ),
             );
         }
     }
-    log.len = bytes.len() as u64;
-    truncate(shared, log)?;
+    log.len = end;
+    log.in_log = scan
+        .groups
+        .iter()
+        .flat_map(|g| g.records.iter().map(|r| r.task().to_string()))
+        .collect();
+    log.compact_at = shared.log_limit.max(super::log::HEADER_LEN + 1);
     log.failed = None;
     log.loaded = true;
     Ok(tasks.into_iter().map(|t| t.task).collect())

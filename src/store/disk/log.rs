@@ -10,16 +10,18 @@
 //!         | m u32 | m × (length u32 | a trajectory file's bytes)   (the trajectories added)
 //! record  kind u8 (2) | id length u32 | id | client length u32 | client
 //!         | n u32 | n × (env u32 | episodes ended u64)   (SPEC §9's record of ended episodes)
+//! record  kind u8 (3) | id length u32 | id | version u64 | episodes_completed u64
+//!         | steps_shaped u64   (a task's counters at a graceful stop, at pool version)
 //! ```
 //!
 //! A kind-2 record goes with the kind-1 record of the change that ended those episodes,
-//! in the same group (logs written before it existed hold only kind 1).
+//! in the same group (logs written before it existed hold only kind 1). Kind 3 exists
+//! since data dir format 3: a graceful stop logs the counters counted since the last
+//! change instead of writing snapshots.
 //!
 //! The CRC of a group covers its magic, lengths and records. A group is the unit of
 //! atomicity: the writer writes the next group only after the previous one is synced, so
 //! after a crash only the last group can be incomplete.
-
-use std::collections::HashSet;
 
 use super::codec::encode_trajectory;
 use crate::core::Pool;
@@ -35,6 +37,7 @@ const GROUP_MAGIC: &[u8; 4] = b"TGRP";
 const GROUP_HEAD: usize = 12;
 const KIND_COMMIT: u8 = 1;
 const KIND_ENDS: u8 = 2;
+const KIND_COUNTERS: u8 = 3;
 
 /// The header of an empty log.
 pub(super) fn header() -> Vec<u8> {
@@ -50,6 +53,8 @@ pub(super) enum Record {
     Commit(Commit),
     /// Episode ends committed by a client.
     Ends(Ends),
+    /// A task's counters, logged at a graceful stop.
+    Counters(CountersAt),
 }
 
 impl Record {
@@ -58,6 +63,7 @@ impl Record {
         match self {
             Record::Commit(c) => &c.task,
             Record::Ends(e) => &e.task,
+            Record::Counters(c) => &c.task,
         }
     }
 }
@@ -86,6 +92,25 @@ pub(super) fn encode_ends(task: &str, client: &str, counts: &[(u32, u64)]) -> Ve
     b
 }
 
+/// A task's counters (which only grow) when its pool was at `version`.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct CountersAt {
+    pub task: String,
+    pub version: u64,
+    pub counters: Counters,
+}
+
+/// Encodes a record of `task`'s counters at pool version `version`.
+pub(super) fn encode_counters(task: &str, version: u64, counters: Counters) -> Vec<u8> {
+    let mut b = Vec::with_capacity(29 + task.len());
+    b.push(KIND_COUNTERS);
+    put_bytes(&mut b, task.as_bytes());
+    for v in [version, counters.episodes_completed, counters.steps_shaped] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b
+}
+
 /// One pool change as it is logged: the pool after the change, given as the seqs it
 /// holds, the trajectories new since `base_version`, and the counters.
 #[derive(Debug, Clone, PartialEq)]
@@ -102,11 +127,16 @@ pub(super) struct Commit {
 
 /// Encodes the record of the change from `base` to `after`.
 pub(super) fn encode_commit(task: &str, base: &Pool, after: &Pool, counters: Counters) -> Vec<u8> {
-    let old: HashSet<u64> = base.seqs().iter().copied().collect();
+    // Both pools hold their trajectories by seq: one merge finds the new ones.
+    let old = base.seqs();
+    let mut j = 0;
     let added: Vec<Vec<u8>> = after
         .trajectories()
         .iter()
-        .filter(|t| !old.contains(&t.seq))
+        .filter(|t| {
+            j += old[j..].partition_point(|&s| s < t.seq);
+            old.get(j) != Some(&t.seq)
+        })
         .map(|t| encode_trajectory(t))
         .collect();
     let mut b = Vec::with_capacity(64 + task.len() + 8 * after.len());
@@ -198,10 +228,23 @@ fn decode_record(r: &mut Reader) -> Result<Record, String> {
     match r.u8()? {
         KIND_COMMIT => decode_commit(r).map(Record::Commit),
         KIND_ENDS => decode_ends(r).map(Record::Ends),
+        KIND_COUNTERS => decode_counters(r).map(Record::Counters),
         kind => Err(format!(
             "unknown record kind {kind} (written by a newer tamrm?)"
         )),
     }
+}
+
+fn decode_counters(r: &mut Reader) -> Result<CountersAt, String> {
+    let task = String::from_utf8(r.bytes()?.to_vec()).map_err(|_| "a task id is not UTF-8")?;
+    Ok(CountersAt {
+        task,
+        version: r.u64()?,
+        counters: Counters {
+            episodes_completed: r.u64()?,
+            steps_shaped: r.u64()?,
+        },
+    })
 }
 
 fn decode_ends(r: &mut Reader) -> Result<Ends, String> {

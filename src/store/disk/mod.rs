@@ -13,8 +13,10 @@
 //! ```
 //!
 //! A pool change is durable once its group is synced in the log; the snapshots catch up
-//! at compaction (the log past its size limit), at graceful shutdown (`save_counters`)
-//! and after recovery. At start the log is replayed over the snapshots.
+//! only at compaction (the log past its size limit). A graceful stop logs each task's
+//! counters counted since its last change (one group, one sync for all tasks), and a
+//! start replays the log over the snapshots and keeps it: neither writes snapshots, so
+//! both take a time bounded by the log's size limit, not by the trajectories added.
 //!
 //! Split by job: [`codec`] (the files' bytes), [`log`] (the log's bytes), [`files`]
 //! (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the group
@@ -69,6 +71,8 @@ struct Shared {
     stats: Stats,
     /// Log size that triggers a compaction.
     log_limit: u64,
+    /// The server is stopping: a compaction in progress is abandoned ([`Store::stopping`]).
+    stopping: std::sync::atomic::AtomicBool,
 }
 
 struct Inner {
@@ -166,6 +170,7 @@ impl DiskStore {
             wake: Condvar::new(),
             stats,
             log_limit,
+            stopping: Default::default(),
         });
         let writer = writer::spawn(shared.clone())?;
         Ok(DiskStore {
@@ -191,6 +196,27 @@ impl DiskStore {
             changes: s.changes.load(Ordering::Relaxed),
             compactions: s.compactions.load(Ordering::Relaxed),
         }
+    }
+
+    /// Folds the commit log into the snapshots now (as a compaction does when the log
+    /// passes its limit): every task whose snapshot lags gets a new one, in one batch of
+    /// syncs, then the log is emptied. For `tamrm compact` (a stopped server's data dir,
+    /// e.g. before going back to an older build) and tests; after [`Store::load`].
+    pub async fn compact(&self) -> Result<(), StoreError> {
+        self.run(|s| {
+            let mut log = s.io.lock();
+            if !log.loaded {
+                return Err(err(&s.root, "the store's tasks are not loaded yet"));
+            }
+            if let Some(f) = &log.failed {
+                return Err(err(
+                    &log.path,
+                    format!("the commit log failed: {}", f.message),
+                ));
+            }
+            writer::checkpoint(s, &mut log)
+        })
+        .await
     }
 
     /// Runs blocking file work on tokio's blocking pool (inline outside a runtime).
@@ -293,19 +319,6 @@ impl Shared {
             .map(|(id, e)| (id.clone(), e.dirty_parts()))
             .collect()
     }
-
-    /// Writes the snapshot of every task that lacks changes (at graceful shutdown:
-    /// `save_counters` of each task has recorded its final counters) in one batch of
-    /// syncs; empties the log once no task's snapshot lags behind it.
-    fn flush_snapshots(&self) -> Result<(), StoreError> {
-        let mut log = self.io.lock();
-        entry::write_dirty(self, &self.dirty())?;
-        let all_clean = self.tasks.lock().values().all(|e| !e.is_dirty());
-        if all_clean && log.failed.is_none() {
-            writer::truncate(self, &mut log)?;
-        }
-        Ok(())
-    }
 }
 
 #[async_trait::async_trait]
@@ -369,6 +382,7 @@ impl Store for DiskStore {
                     counters,
                 }),
                 ends,
+                counters: None,
                 records,
             })?;
             done.await.map_err(|_| {
@@ -393,6 +407,7 @@ impl Store for DiskStore {
                 task: id.to_string(),
                 pool: None,
                 ends,
+                counters: None,
                 records,
             });
             if let Err(e) = queued {
@@ -414,29 +429,46 @@ impl Store for DiskStore {
             .unwrap_or_default())
     }
 
+    fn stopping(&self) {
+        self.inner.shared.stopping.store(true, Ordering::Release);
+    }
+
     async fn save_counters(
         &self,
         id: &str,
         _pool: Arc<Pool>,
         counters: Counters,
     ) -> Result<(), StoreError> {
-        // Recorded at once, written with every other task's changes: a shutdown saves
-        // the counters of all tasks at once (`Registry::flush_counters`), and whichever
-        // call runs first writes the snapshots of every task recorded by then in one
-        // batch of syncs; the later calls find theirs written or write the rest.
-        {
-            let shared = &self.inner.shared;
+        // One kind-3 record, synced with every other task's: a shutdown saves the
+        // counters of all tasks at once (`Registry::flush_counters`), so their records
+        // form one group. No snapshot is written: what the snapshots lack stays in the
+        // log, which the next start replays.
+        let shared = &self.inner.shared;
+        let record = {
             let mut tasks = shared.tasks.lock();
             let e = tasks
                 .get_mut(id)
                 .ok_or_else(|| err(&shared.tasks_dir(), format!("task {id:?} has no directory")))?;
             e.counters = counters;
-            if !e.is_dirty() {
-                // A task untouched since its snapshot costs nothing (no fsync).
+            if e.durable_counters == counters {
+                // Nothing counted since the last change: no record, no sync.
                 return Ok(());
             }
-        }
-        self.run(Shared::flush_snapshots).await
+            log::encode_counters(id, e.pool.version(), counters)
+        };
+        let done = shared.submit(Change {
+            task: id.to_string(),
+            pool: None,
+            ends: ClientEnds::new(),
+            counters: Some(counters),
+            records: vec![record],
+        })?;
+        done.await.map_err(|_| {
+            err(
+                &shared.log_path,
+                "the commit log writer stopped before the counters were written",
+            )
+        })?
     }
 }
 

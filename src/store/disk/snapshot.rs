@@ -6,6 +6,7 @@
 use std::collections::HashSet;
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::codec::{check_format, encode_trajectory, ClientEnds, EndsFile, PoolFile, FILE_FORMAT};
 use super::files::{
@@ -44,10 +45,18 @@ pub(super) struct SnapshotJob<'a> {
 /// `pool.json` and `ends.json` (each rename a task's commit point) and fsyncs the task
 /// directories together; then removes the files of trajectories that left (best effort).
 /// Returns, per job, the seqs its `pool.json` now lists (`None` for a job without pool).
+///
+/// Abandoned, with an error, once `stop` is set, at any point before the renames: what
+/// it wrote by then is unlisted, so the next start removes it.
 pub(super) fn write_snapshots(
     jobs: &[SnapshotJob<'_>],
     syncs: &Syncs,
+    stop: &AtomicBool,
 ) -> Result<Vec<Option<Vec<u64>>>, StoreError> {
+    let check = |dir: &Path| match stop.load(Ordering::Acquire) {
+        true => Err(err(dir, ABANDONED)),
+        false => Ok(()),
+    };
     let mut files = Vec::new();
     let mut traj_dirs = Vec::new();
     for (dir, pool, listed) in jobs
@@ -57,6 +66,7 @@ pub(super) fn write_snapshots(
         let old: HashSet<u64> = listed.iter().copied().collect();
         let before = files.len();
         for t in pool.trajectories().iter().filter(|t| !old.contains(&t.seq)) {
+            check(dir)?;
             let path = traj_path(dir, t.seq);
             write_unsynced(&path, &encode_trajectory(t))?;
             files.push(path);
@@ -67,6 +77,9 @@ pub(super) fn write_snapshots(
     }
     fsync_many(&files, syncs)?;
     fsync_many(&traj_dirs, syncs)?;
+    if let Some(j) = jobs.first() {
+        check(j.dir)?;
+    }
     let mut renames = Vec::new();
     for j in jobs {
         if let Some((pool, counters, _)) = j.pool {
@@ -117,6 +130,10 @@ pub(super) fn write_snapshots(
 }
 
 const ENDS_FILE: &str = "ends.json";
+
+/// The error of a batch of snapshots abandoned because the server is stopping.
+pub(super) const ABANDONED: &str =
+    "snapshots abandoned: the server is stopping (the commit log keeps every change)";
 
 /// The bytes of `ends.json` (at `path`) holding `ends`.
 fn ends_bytes(path: &Path, ends: &EndedEpisodes) -> Result<Vec<u8>, StoreError> {

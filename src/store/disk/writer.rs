@@ -31,13 +31,15 @@ use crate::store::{Counters, StoreError};
 const MAX_GROUP_BYTES: usize = 16 << 20;
 
 /// A change for the writer: a task's pool change, the episode ends it records (SPEC §9),
-/// or both, with their encoded log records.
+/// or both; or the task's counters at a graceful stop; with their encoded log records.
 pub(super) struct Change {
     pub task: String,
-    /// The pool change; `None` for a record of discarded episode ends only (checked
-    /// against no version: it changes no pool).
+    /// The pool change; `None` for a record of discarded episode ends only, or of
+    /// counters (checked against no version: neither changes the pool).
     pub pool: Option<PoolChange>,
     pub ends: ClientEnds,
+    /// The counters a kind-3 record holds (synced, and then durable).
+    pub counters: Option<Counters>,
     pub records: Vec<Vec<u8>>,
 }
 
@@ -177,6 +179,9 @@ fn run(shared: &Shared) {
                 Ok(()) => {
                     shared.stats.compactions.fetch_add(1, Ordering::Relaxed);
                 }
+                Err(e) if shared.stopping.load(Ordering::Acquire) => {
+                    tracing::info!(error = %e, "commit log compaction cut short by the stop");
+                }
                 Err(e) => {
                     log.compact_at = log.len.saturating_add(shared.log_limit);
                     tracing::warn!(error = %e, "commit log compaction failed; retried when the log has grown by its limit again");
@@ -263,7 +268,9 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
     // A group of discarded episode ends only is written without a sync of its own: it
     // survives the process (kill -9 included) in the page cache and is made durable by
     // the next group's fdatasync, so it never delays the pool changes behind it.
-    let sync = accepted.iter().any(|r| r.change.pool.is_some());
+    let sync = accepted
+        .iter()
+        .any(|r| r.change.pool.is_some() || r.change.counters.is_some());
     let written = match log.file.write_all_at(&bytes, log.len) {
         Err(e) => Err((e, false)),
         Ok(()) if !sync => Ok(()),
@@ -310,7 +317,11 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
             if let Some(p) = &c.pool {
                 e.pool = p.pool.clone();
                 e.counters = p.counters;
+                e.durable_counters = p.counters;
                 e.merge_ends(&c.ends);
+            }
+            if let Some(counters) = c.counters {
+                e.durable_counters = counters;
             }
         }
         log.in_log.insert(c.task.clone());

@@ -107,6 +107,7 @@ impl Drop for Engine {
     /// The task counters since the last commit are persisted when the engine goes (its
     /// pools are durable at every change already).
     fn drop(&mut self) {
+        self.registry.stopping();
         self.rt.block_on(self.registry.flush_counters());
     }
 }

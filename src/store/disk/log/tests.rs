@@ -92,3 +92,27 @@ fn a_torn_last_group_is_dropped_and_an_earlier_bad_one_is_corruption() {
         assert!(scan(&full[..cut]).is_err());
     }
 }
+
+#[test]
+fn counters_records_round_trip_and_truncations_fail() {
+    let c = Counters {
+        episodes_completed: u64::MAX - 1,
+        steps_shaped: 12_345,
+    };
+    let r = encode_counters("a/b:c", 17, c);
+    let s = scan(&log_of(&[encode_group(&[&r])])).unwrap();
+    assert_eq!(
+        s.groups[0].records,
+        vec![Record::Counters(CountersAt {
+            task: "a/b:c".into(),
+            version: 17,
+            counters: c,
+        })]
+    );
+    assert_eq!(s.groups[0].records[0].task(), "a/b:c");
+    // A record cut short inside a valid group is corruption, not a torn tail.
+    for cut in 1..r.len() {
+        let err = scan(&log_of(&[encode_group(&[&r[..cut]])])).unwrap_err();
+        assert!(err.contains("record 0"), "cut {cut}: {err}");
+    }
+}
