@@ -164,3 +164,43 @@ fn restore_rejects_malformed_pools() {
     assert_eq!(p.seqs(), &[1, 2]);
     assert_eq!(p.version(), 7);
 }
+
+/// The order an insert derives from the previous one (its sort hint) is the order
+/// `Pool::restore` derives from scratch, through inserts, replacements (the worst
+/// anywhere in seq order), ties of scores and of normalised scores, and resets.
+#[test]
+fn the_order_after_a_change_is_the_one_derived_from_scratch() {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = |m: u64| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state % m
+    };
+    for capacity in [1, 2, 3, 7, 64] {
+        let mut p = Pool::new(capacity);
+        for _ in 0..400 {
+            // Few distinct scores (ties), some huge ones (normalised ties), some tiny.
+            let score = match next(4) {
+                0 => next(5) as f64,
+                1 => 1e300 * (next(3) as f64 - 1.0),
+                2 => 1e-300 * next(7) as f64,
+                _ => next(1000) as f64 / 7.0,
+            };
+            offer(&mut p, 1 + next(4) as usize, score);
+            if next(60) == 0 {
+                p.apply(&p.plan_reset());
+            }
+            let trajectories = p
+                .trajectories()
+                .iter()
+                .map(|t| Trajectory::clone(t))
+                .collect();
+            let fresh = Pool::restore(capacity, trajectories, p.version(), p.next_seq()).unwrap();
+            assert_eq!(p.by_place(), fresh.by_place());
+            assert_eq!(p.place_of(), fresh.place_of());
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(p.xs()), bits(fresh.xs()));
+        }
+    }
+}
