@@ -4,6 +4,16 @@ fn acts(v: &[u32]) -> ActionSeq {
     ActionSeq::Discrete(v.to_vec())
 }
 
+/// A seeded xorshift: `next(m)` is a pseudo-random number below `m`.
+fn xorshift(mut state: u64) -> impl FnMut(u64) -> u64 {
+    move |m| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state % m
+    }
+}
+
 fn offer(pool: &mut Pool, len: usize, score: f64) -> Option<PoolChange> {
     let change = pool.plan_offer(acts(&vec![0; len]), score);
     if let Some(c) = &change {
@@ -60,13 +70,7 @@ fn reset_empties_and_bumps_version_but_not_seq() {
 
 #[test]
 fn the_by_step_layout_after_a_change_is_the_one_built_from_scratch() {
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut next = |m: u64| {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state % m
-    };
+    let mut next = xorshift(0x2545_f491_4f6c_dd1d);
     for capacity in [1, 2, 5, 30] {
         let mut p = Pool::new(capacity);
         for _ in 0..200 {
@@ -114,13 +118,7 @@ fn the_by_step_layout_after_a_change_is_the_one_built_from_scratch() {
 
 #[test]
 fn laying_out_several_changes_at_once_gives_the_cells_of_a_full_layout() {
-    let mut state = 0x51af_d7ed_558c_cd1du64;
-    let mut next = |m: u64| {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state % m
-    };
+    let mut next = xorshift(0x51af_d7ed_558c_cd1d);
     for capacity in [1, 2, 5, 30] {
         let mut p = Pool::new(capacity);
         for _ in 0..150 {
@@ -170,13 +168,7 @@ fn restore_rejects_malformed_pools() {
 /// anywhere in seq order), ties of scores and of normalised scores, and resets.
 #[test]
 fn the_order_after_a_change_is_the_one_derived_from_scratch() {
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut next = |m: u64| {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state % m
-    };
+    let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
     for capacity in [1, 2, 3, 7, 64] {
         let mut p = Pool::new(capacity);
         for _ in 0..400 {
