@@ -332,6 +332,17 @@ impl TaskHandle {
         self.publish_if(pool, |new, published| new < published);
     }
 
+    /// On a shared store: publishes the store's pool if it is newer than the published
+    /// one. A learner that moves here from another server (its Follow stream broke) must
+    /// start from every change that server acknowledged, which this server may not have
+    /// been told of yet (the store's notices take up to `store_poll_ms`).
+    pub async fn catch_up_with_store(&self) -> Result<(), StoreError> {
+        if let Some(pool) = self.store.load_pool(&self.key).await? {
+            self.publish(Arc::new(pool));
+        }
+        Ok(())
+    }
+
     /// On a shared store that announced a version below the published one: follows the
     /// store's pool if it is behind once no commit of this server is in flight. A notice
     /// older than this server's own commit is usually late news only (the store is never
