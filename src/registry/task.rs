@@ -332,15 +332,19 @@ impl TaskHandle {
         self.publish_if(pool, |new, published| new < published);
     }
 
-    /// On a shared store: publishes the store's pool if it is newer than the published
-    /// one. A learner that moves here from another server (its Follow stream broke) must
-    /// start from every change that server acknowledged, which this server may not have
-    /// been told of yet (the store's notices take up to `store_poll_ms`).
-    pub async fn catch_up_with_store(&self) -> Result<(), StoreError> {
-        if let Some(pool) = self.store.load_pool(&self.key).await? {
-            self.publish(Arc::new(pool));
+    /// On a shared store, as a stream opens: publishes the store's pool if it is newer
+    /// than the published one. A learner that moves here from another server (its stream
+    /// broke) must go on from every change that server acknowledged, which this server
+    /// may not have been told of yet (the store's notices take up to `store_poll_ms`). A
+    /// store out of reach leaves this server's pool (with a warning), as for every step.
+    pub async fn catch_up_with_store(&self) {
+        match self.store.load_pool(&self.key).await {
+            Ok(Some(pool)) => self.publish(Arc::new(pool)),
+            Ok(None) => {}
+            Err(e) => {
+                tracing::warn!(task = %self.key, error = %e, "could not read the task's pool from the store; going on with this server's")
+            }
         }
-        Ok(())
     }
 
     /// On a shared store that announced a version below the published one: follows the

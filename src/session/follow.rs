@@ -118,11 +118,8 @@ impl FollowSession {
         check_open(registry, req.task_id, req.num_envs)?;
         let task = registry.lookup(req.tenant, req.task_id).await?;
         // The first snapshot holds every change acknowledged anywhere (SPEC §13: a
-        // learner's own ends are applied before its next step, even after a failover);
-        // a store out of reach leaves this server's pool, as for every step meanwhile.
-        if let Err(e) = task.catch_up_with_store().await {
-            tracing::warn!(task = %task.key(), error = %e, "could not read the task's pool from the store; following this server's");
-        }
+        // learner's own ends are applied before its next step, even after a failover).
+        task.catch_up_with_store().await;
         // The episodes live at the learner: the stream holds its window and a pool copy
         // it shares with the task.
         let memory = registry.reserve_stream_bytes(req.transport_bytes)?;

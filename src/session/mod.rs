@@ -173,6 +173,9 @@ impl StreamSession {
     pub async fn open(registry: &Registry, req: &OpenRequest<'_>) -> Result<StreamSession, Error> {
         check_open(registry, req.task_id, req.num_envs)?;
         let task = registry.lookup(req.tenant, req.task_id).await?;
+        // A stream resumed here after its server failed shapes its next steps against
+        // every change acknowledged there (SPEC §9, §10).
+        task.catch_up_with_store().await;
         let config = *task.config();
         let bytes = config
             .env_bytes_bound()
