@@ -46,16 +46,19 @@ def in_threads(run: Callable[[int], None], n: int, timeout: float = 60.0) -> Non
 
 class SlowProxy:
     """A TCP proxy on 127.0.0.1 that forwards what the server sends ``delay`` seconds late
-    (in order; what the client sends goes at once): a slow path from server to learner.
-    ``address`` is the proxy's; use it as a context manager."""
+    and what the client sends ``up_delay`` seconds late (each in order): a slow path
+    between server and learner. ``address`` is the proxy's; ``sever()`` cuts the
+    connections open now, dropping what they still carry (new ones are forwarded as
+    before); use it as a context manager."""
 
-    def __init__(self, target: str, delay: float) -> None:
+    def __init__(self, target: str, delay: float, up_delay: float = 0.0) -> None:
         host, port = target.rsplit(":", 1)
         self._target = (host, int(port))
         self._delay = delay
+        self._up_delay = up_delay
         self._listener = socket.create_server(("127.0.0.1", 0))
         self.address = f"127.0.0.1:{self._listener.getsockname()[1]}"
-        self._sockets: list[socket.socket] = [self._listener]
+        self._connections: list[socket.socket] = []
         threading.Thread(target=self._accept, daemon=True).start()
 
     def _accept(self) -> None:
@@ -67,32 +70,22 @@ class SlowProxy:
             up = socket.create_connection(self._target)
             for s in (down, up):
                 s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            self._sockets += [down, up]
-            late: queue.Queue[tuple[float, bytes]] = queue.Queue()
-            threading.Thread(target=self._pump, args=(down, up, None), daemon=True).start()
-            threading.Thread(target=self._pump, args=(up, None, late), daemon=True).start()
-            threading.Thread(target=self._late, args=(late, down), daemon=True).start()
+            self._connections += [down, up]
+            for src, dst, delay in ((down, up, self._up_delay), (up, down, self._delay)):
+                late: queue.Queue[tuple[float, bytes]] = queue.Queue()
+                threading.Thread(target=self._pump, args=(src, late, delay), daemon=True).start()
+                threading.Thread(target=self._late, args=(late, dst), daemon=True).start()
 
     def _pump(
-        self,
-        src: socket.socket,
-        dst: socket.socket | None,
-        late: queue.Queue[tuple[float, bytes]] | None,
+        self, src: socket.socket, late: queue.Queue[tuple[float, bytes]], delay: float
     ) -> None:
         while True:
             try:
                 data = src.recv(65536)
             except OSError:
                 data = b""
-            if late is not None:
-                late.put((time.monotonic() + self._delay, data))
-            elif data and dst is not None:
-                with contextlib.suppress(OSError):
-                    dst.sendall(data)
+            late.put((time.monotonic() + delay, data))
             if not data:
-                if dst is not None:
-                    with contextlib.suppress(OSError):
-                        dst.shutdown(socket.SHUT_WR)
                 return
 
     def _late(self, late: queue.Queue[tuple[float, bytes]], dst: socket.socket) -> None:
@@ -107,10 +100,19 @@ class SlowProxy:
             except OSError:
                 return
 
+    def sever(self) -> None:
+        """Closes the connections open now (both ends): what they still carry is lost."""
+        connections, self._connections = self._connections, []
+        for s in connections:
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
+            with contextlib.suppress(OSError):
+                s.close()
+
     def __enter__(self) -> SlowProxy:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for s in self._sockets:
-            with contextlib.suppress(OSError):
-                s.close()
+        self.sever()
+        with contextlib.suppress(OSError):
+            self._listener.close()

@@ -343,6 +343,42 @@ def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
     assert [t.score for t in pool.trajectories] == [400.0, 500.0]
 
 
+def test_a_snapshot_behind_an_unanswered_end_does_not_take_the_session_back(
+    remote_client: tamrm.Client, task_id: str
+) -> None:
+    """The stream breaks while an end is on its way to the server (a slow path from the
+    learner), so the re-opened stream's snapshot lacks it until the re-sent end arrives.
+    That snapshot is behind the session's plan, not a server that lost changes: every
+    step shapes on with the plan's version, and the end is committed once."""
+    config = {"num_actions": 3, "pool_capacity": 4, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    with SlowProxy(remote_client.target, delay=0.0, up_delay=0.4) as proxy:
+        client = tamrm.Client(proxy.address, resume_timeout_secs=30)
+        learner = client.session(task_id, 1, local=True)
+        try:
+            for _ in range(3):
+                learner.step([1], [1.0])
+            learner.step([1], [1.0], [True])  # plans the pool's first trajectory
+            proxy.sever()  # ...and its message is lost on the way
+            seen = []
+            committed_at = None
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                seen.append(learner.step([1], [1.0]).pool_version)
+                if committed_at is None and remote_client.get_task(task_id).stats.pool_version:
+                    committed_at = len(seen)
+                if committed_at is not None and len(seen) > committed_at + 10:
+                    break
+                time.sleep(0.01)
+            assert committed_at is not None, "the re-sent end never reached the server"
+            assert set(seen) == {1}, f"the session went back to {min(seen)}"
+        finally:
+            learner.close()
+            client.close()
+    stats = remote_client.get_task(task_id).stats
+    assert (stats.pool_version, stats.episodes_completed) == (1, 1)
+
+
 # -- resume ------------------------------------------------------------------------------------
 
 NUM_ENVS = 3
