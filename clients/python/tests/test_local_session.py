@@ -343,6 +343,38 @@ def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
     assert [t.score for t in pool.trajectories] == [400.0, 500.0]
 
 
+def test_two_changes_planned_against_a_stale_pool_are_never_shaped_with(
+    remote_client: tamrm.Client, task_id: str
+) -> None:
+    """Two ends of one batch plan two changes against a copy that has not yet seen another
+    client's better trajectory; the server refuses both, so its version is one below the
+    plan's. A step that reported the plan's version would see the next go down: the batch
+    waits for the server's decision and reports it, and the next step shapes with it."""
+    config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    for score in (0.0, 100.0):
+        remote_client.add_trajectory(task_id, [1, 1, 1, 1], score)
+    with SlowProxy(remote_client.target, delay=0.05) as proxy:
+        client = tamrm.Client(proxy.address)
+        learner = client.session(task_id, 2, local=True)
+        try:
+            for _ in range(3):
+                learner.step([2, 2], [0.0, 0.0])
+            added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 1000.0)
+            ended = learner.step([2, 2], [0.0, 0.0], [True, True], episode_scores=[50.0, 60.0])
+            assert ended.pool_version == added.pool_version
+            with remote_client.session(task_id, 1) as remote:
+                want = remote.step([0], [0.0])
+            got = learner.step([0, 0], [0.0, 0.0])
+            assert got.pool_version == want.pool_version == added.pool_version
+            assert got.knn_rewards[:1].tobytes() == want.knn_rewards.tobytes()
+        finally:
+            learner.close()
+            client.close()
+    pool = remote_client.get_pool(task_id)
+    assert [t.score for t in pool.trajectories] == [100.0, 1000.0]
+
+
 def test_a_snapshot_behind_an_unanswered_end_does_not_take_the_session_back(
     remote_client: tamrm.Client, task_id: str
 ) -> None:
