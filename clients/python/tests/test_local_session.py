@@ -15,6 +15,7 @@ sends only its episode ends. Against the real server binary:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import hashlib
 import pickle
@@ -306,6 +307,26 @@ def test_many_local_learners_on_one_task(remote_client: tamrm.Client, task_id: s
     assert client.get_pool(task_id).pool_version == stats.pool_version
 
 
+@contextlib.contextmanager
+def _late_learner(
+    remote_client: tamrm.Client, task_id: str, num_envs: int
+) -> Iterator[tuple[tamrm.Client, tamrm.Session]]:
+    """A client and its local session on a new task (capacity 2, seeded with scores 0 and
+    100) whose updates come 50 ms late: a slow path from the server."""
+    config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    for score in (0.0, 100.0):
+        remote_client.add_trajectory(task_id, [1, 1, 1, 1], score)
+    with SlowProxy(remote_client.target, delay=0.05) as proxy:
+        client = tamrm.Client(proxy.address)
+        learner = client.session(task_id, num_envs, local=True)
+        try:
+            yield client, learner
+        finally:
+            learner.close()
+            client.close()
+
+
 def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
     remote_client: tamrm.Client, task_id: str
 ) -> None:
@@ -314,31 +335,21 @@ def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
     copy plans a replacement the server refuses, at the version of the server's pool. The
     ack differs from the plan, and the copy takes the server's pool before its next step
     (an update of the same version would not replace it)."""
-    config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
-    remote_client.create_task(task_id, **config)
-    for score in (0.0, 100.0):
-        remote_client.add_trajectory(task_id, [1, 1, 1, 1], score)
-    with SlowProxy(remote_client.target, delay=0.05) as proxy:
-        client = tamrm.Client(proxy.address)
-        learner = client.session(task_id, 1, local=True)
-        try:
-            for r in range(4):
-                for _ in range(3):
-                    learner.step([2], [0.0])
-                # The server's pool: minimum 100 (r + 1); the copy's: 100 r.
-                added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 100.0 * (r + 2))
-                planned = learner.step([2], [0.0], [True], episode_scores=[100.0 * r + 50])
-                assert planned.pool_version == added.pool_version, r
-                with remote_client.session(task_id, 1) as remote:
-                    want = remote.step([0], [0.0])
-                client.get_task(task_id)  # the end's ack is in
-                got = learner.step([0], [0.0])
-                assert got.pool_version == want.pool_version == added.pool_version, r
-                assert got.knn_rewards.tobytes() == want.knn_rewards.tobytes(), r
-                learner.abandon([0])
-        finally:
-            learner.close()
-            client.close()
+    with _late_learner(remote_client, task_id, 1) as (client, learner):
+        for r in range(4):
+            for _ in range(3):
+                learner.step([2], [0.0])
+            # The server's pool: minimum 100 (r + 1); the copy's: 100 r.
+            added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 100.0 * (r + 2))
+            planned = learner.step([2], [0.0], [True], episode_scores=[100.0 * r + 50])
+            assert planned.pool_version == added.pool_version, r
+            with remote_client.session(task_id, 1) as remote:
+                want = remote.step([0], [0.0])
+            client.get_task(task_id)  # the end's ack is in
+            got = learner.step([0], [0.0])
+            assert got.pool_version == want.pool_version == added.pool_version, r
+            assert got.knn_rewards.tobytes() == want.knn_rewards.tobytes(), r
+            learner.abandon([0])
     pool = remote_client.get_pool(task_id)
     assert [t.score for t in pool.trajectories] == [400.0, 500.0]
 
@@ -350,27 +361,17 @@ def test_two_changes_planned_against_a_stale_pool_are_never_shaped_with(
     client's better trajectory; the server refuses both, so its version is one below the
     plan's. A step that reported the plan's version would see the next go down: the batch
     waits for the server's decision and reports it, and the next step shapes with it."""
-    config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
-    remote_client.create_task(task_id, **config)
-    for score in (0.0, 100.0):
-        remote_client.add_trajectory(task_id, [1, 1, 1, 1], score)
-    with SlowProxy(remote_client.target, delay=0.05) as proxy:
-        client = tamrm.Client(proxy.address)
-        learner = client.session(task_id, 2, local=True)
-        try:
-            for _ in range(3):
-                learner.step([2, 2], [0.0, 0.0])
-            added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 1000.0)
-            ended = learner.step([2, 2], [0.0, 0.0], [True, True], episode_scores=[50.0, 60.0])
-            assert ended.pool_version == added.pool_version
-            with remote_client.session(task_id, 1) as remote:
-                want = remote.step([0], [0.0])
-            got = learner.step([0, 0], [0.0, 0.0])
-            assert got.pool_version == want.pool_version == added.pool_version
-            assert got.knn_rewards[:1].tobytes() == want.knn_rewards.tobytes()
-        finally:
-            learner.close()
-            client.close()
+    with _late_learner(remote_client, task_id, 2) as (_, learner):
+        for _ in range(3):
+            learner.step([2, 2], [0.0, 0.0])
+        added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 1000.0)
+        ended = learner.step([2, 2], [0.0, 0.0], [True, True], episode_scores=[50.0, 60.0])
+        assert ended.pool_version == added.pool_version
+        with remote_client.session(task_id, 1) as remote:
+            want = remote.step([0], [0.0])
+        got = learner.step([0, 0], [0.0, 0.0])
+        assert got.pool_version == want.pool_version == added.pool_version
+        assert got.knn_rewards[:1].tobytes() == want.knn_rewards.tobytes()
     pool = remote_client.get_pool(task_id)
     assert [t.score for t in pool.trajectories] == [100.0, 1000.0]
 
