@@ -452,22 +452,16 @@ impl Store for FollowStore {
             .map(drop)
     }
 
-    /// The followed pool, or `None` while it is behind an end planned here and not yet
-    /// answered: the session shapes on the plan, which the server's next update or the
-    /// end's ack brings (an ack that differs from its plan makes the session take the
-    /// server's pool at its next step, [`FollowStore::poll`]). Such a pool is no news
-    /// for the session's registry, nor a sign that the server lost changes (it would
-    /// follow it back): the update of the session's previous end arriving after the
-    /// next end was planned, or a re-opened stream's snapshot taken before the server
-    /// got the re-sent end, are both behind the plan.
+    /// The followed pool, or `None` while it is behind an unanswered end's plan (the
+    /// previous end's update coming after the next end was planned, a re-opened stream's
+    /// snapshot without the re-sent end): no news, nor a server that lost changes. The
+    /// acks settle the plan ([`FollowStore::poll`]).
     async fn load_pool(&self, _: &str) -> Result<Option<Pool>, StoreError> {
         let mut u = self.unsettled.lock();
         self.reap(&mut u);
         let pool = self.shared.pool.lock().clone();
-        if u.in_flight.iter().any(|f| f.version > pool.version()) {
-            return Ok(None);
-        }
-        Ok(Some((*pool).clone()))
+        let behind = u.in_flight.iter().any(|f| f.version > pool.version());
+        Ok((!behind).then(|| (*pool).clone()))
     }
 
     fn changes(&self) -> Option<broadcast::Receiver<PoolChanged>> {
