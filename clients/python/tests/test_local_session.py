@@ -354,19 +354,30 @@ def test_a_copy_that_planned_against_a_stale_pool_takes_the_servers(
     assert [t.score for t in pool.trajectories] == [400.0, 500.0]
 
 
+#: Two ends scored 50 and 60: in one batch, or in two.
+TWO_ENDS = {
+    "one batch": [([True, True], [50.0, 60.0])],
+    "two batches": [([True, False], {0: 50.0}), ([False, True], {1: 60.0})],
+}
+
+
+@pytest.mark.parametrize("batches", TWO_ENDS.values(), ids=TWO_ENDS.keys())
 def test_two_changes_planned_against_a_stale_pool_are_never_shaped_with(
-    remote_client: tamrm.Client, task_id: str
+    remote_client: tamrm.Client, task_id: str, batches: list[tuple[list[bool], Any]]
 ) -> None:
-    """Two ends of one batch plan two changes against a copy that has not yet seen another
-    client's better trajectory; the server refuses both, so its version is one below the
-    plan's. A step that reported the plan's version would see the next go down: the batch
-    waits for the server's decision and reports it, and the next step shapes with it."""
+    """Two ends plan two changes against a copy that has not yet seen another client's
+    better trajectory; the server refuses both, so its version is one below the plan's. A
+    step that reported the plan's version would see the next go down. In one batch, the
+    batch waits for the server's decision; in two, the second waits for the first's ack,
+    which differs from its plan, and then for its own. Either way the step reports the
+    server's version, and the next step shapes with the server's pool."""
     with _late_learner(remote_client, task_id, 2) as (_, learner):
         for _ in range(3):
             learner.step([2, 2], [0.0, 0.0])
         added = remote_client.add_trajectory(task_id, [0, 0, 0, 0], 1000.0)
-        ended = learner.step([2, 2], [0.0, 0.0], [True, True], episode_scores=[50.0, 60.0])
-        assert ended.pool_version == added.pool_version
+        for ends, scores in batches:
+            ended = learner.step([2, 2], [0.0, 0.0], ends, episode_scores=scores)
+            assert ended.pool_version == added.pool_version
         with remote_client.session(task_id, 1) as remote:
             want = remote.step([0], [0.0])
         got = learner.step([0, 0], [0.0, 0.0])
@@ -374,6 +385,32 @@ def test_two_changes_planned_against_a_stale_pool_are_never_shaped_with(
         assert got.knn_rewards[:1].tobytes() == want.knn_rewards.tobytes()
     pool = remote_client.get_pool(task_id)
     assert [t.score for t in pool.trajectories] == [100.0, 1000.0]
+    assert remote_client.get_task(task_id).stats.episodes_completed == 2
+
+
+def test_a_second_change_waits_for_the_first_ack_not_for_its_own(
+    remote_client: tamrm.Client, task_id: str
+) -> None:
+    """A change planned while another is in flight is sent at once, and its step waits for
+    the first one's ack (already on its way), which certifies the pool it was planned
+    against, not for its own: the step returns while its end is still on the slow path to
+    the server, with the version a ``Shape`` stream would report."""
+    config = {"num_actions": 3, "pool_capacity": 4, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    with SlowProxy(remote_client.target, delay=0.0, up_delay=1.5) as proxy:
+        client = tamrm.Client(proxy.address)
+        learner = client.session(task_id, 1, local=True)
+        try:
+            learner.step([1], [1.0])
+            assert learner.step([1], [1.0], [True]).pool_version == 1  # answered at once
+            time.sleep(0.75)  # the second end reaches the server 0.75 s after the first
+            learner.step([1], [1.0])
+            assert learner.step([1], [1.0], [True]).pool_version == 2  # waited for the first
+            assert remote_client.get_task(task_id).stats.episodes_completed == 1
+            assert client.get_task(task_id).stats.episodes_completed == 2  # waits for the acks
+        finally:
+            learner.close()
+            client.close()
 
 
 def test_a_snapshot_behind_an_unanswered_end_does_not_take_the_session_back(

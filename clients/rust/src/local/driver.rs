@@ -12,7 +12,7 @@ use tokio::sync::{mpsc, oneshot};
 use tonic::Status;
 
 use super::connection::{Connection, Stream};
-use super::follow::Shared;
+use super::shared::Shared;
 use super::wire::{ends_request, pool_from, updated};
 use crate::remote::failure::resumable;
 

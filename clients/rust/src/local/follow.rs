@@ -32,6 +32,7 @@ use tonic::{Code, Status};
 
 use super::connection::Connection;
 use super::driver::{drive, Answer, Outgoing};
+use super::shared::Shared;
 use super::wire::{end_proto, pool_from};
 
 /// An end (a message of ends) committed without waiting for its ack, and what the
@@ -69,33 +70,6 @@ impl Unsettled {
     }
 }
 
-/// What the store and its driver share.
-pub(crate) struct Shared {
-    /// The task's key in the local registry (its id: the default tenant).
-    pub(crate) key: String,
-    pub(crate) config: TaskConfig,
-    /// The followed pool: the server's, as of the last update received.
-    pub(crate) pool: Mutex<Arc<Pool>>,
-    pub(crate) changes: broadcast::Sender<PoolChanged>,
-    /// The status of the last failure the server answered, for the session's error.
-    pub(crate) failure: Mutex<Option<Status>>,
-    /// Why the driver ended, if the server refused the stream for good.
-    pub(crate) ended: Mutex<Option<Status>>,
-    /// Woken whenever the driver answers a message (for [`FollowStore::wait_acks`]).
-    pub(crate) answered: tokio::sync::Notify,
-}
-
-impl Shared {
-    pub(crate) fn set_pool(&self, pool: Pool) {
-        let version = pool.version();
-        *self.pool.lock() = Arc::new(pool);
-        let _ = self.changes.send(PoolChanged {
-            task: self.key.clone(),
-            version,
-            deleted: false,
-        });
-    }
-}
 /// A store that follows one task of a server (SPEC §13).
 pub(crate) struct FollowStore {
     shared: Arc<Shared>,
@@ -251,6 +225,28 @@ impl FollowStore {
         }
     }
 
+    /// The commit of ends answered with their plan while their ack travels.
+    fn in_background(
+        &self,
+        u: &mut Unsettled,
+        answer: Answer,
+        planned: Pool,
+        changed: Vec<bool>,
+    ) -> Committed {
+        let pool = Arc::new(planned);
+        u.in_flight.push_back(InFlight {
+            answer,
+            changed: changed.clone(),
+            version: pool.version(),
+        });
+        Committed {
+            version: pool.version(),
+            pool,
+            changed,
+            resent: 0,
+        }
+    }
+
     /// Takes the answers that came for the ends in flight (in order: the acks do): an
     /// ack that differs from its plan marks the copy diverged, a failure is kept for the
     /// session's next step (and diverges the copy too: its change was not made).
@@ -385,9 +381,13 @@ impl Store for FollowStore {
     /// pool it decides the same, so a learner alone shapes as a `Shape` stream, bit for
     /// bit, and never waits for an end that leaves the pool as it is. An ack that differs
     /// from its plan marks the copy diverged; the session then takes the server's pool
-    /// once nothing is in flight ([`FollowStore::poll`]). Anything else (a second change
-    /// in flight, a diverged copy) waits for the pool the server made of these ends, with
-    /// every change made before, by anyone, and the registry publishes that.
+    /// once nothing is in flight ([`FollowStore::poll`]). The ends are sent at once in
+    /// every case. One change planned while one is in flight waits for the acks in flight
+    /// (already on their way), not for its own: if they match their plans, the pool it was
+    /// planned against is the server's, and it is answered with its plan as above.
+    /// Anything else (several changes in these ends, a diverged copy) waits for the pool
+    /// the server made of these ends, with every change made before, by anyone, and the
+    /// registry publishes that.
     async fn commit(
         &self,
         _: &str,
@@ -403,26 +403,26 @@ impl Store for FollowStore {
             .map_err(|s| self.failed(s))?;
         let msg = self.message(ends, counters);
         let planned_changes = changed.iter().filter(|&&c| c).count();
-        {
+        let answer = self.submit(msg)?;
+        let certify = {
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
             if !u.diverged && u.changes() + planned_changes <= 1 {
-                let answer = self.submit(msg)?;
-                let pool = Arc::new(planned);
-                u.in_flight.push_back(InFlight {
-                    answer,
-                    changed: changed.clone(),
-                    version: pool.version(),
-                });
-                return Ok(Committed {
-                    version: pool.version(),
-                    pool,
-                    changed,
-                    resent: 0,
-                });
+                return Ok(self.in_background(&mut u, answer, planned, changed));
+            }
+            !u.diverged && planned_changes == 1
+        };
+        if certify {
+            // One change in flight and one planned: the acks in flight, on their way,
+            // certify the pool these ends were planned against (or refute it).
+            self.wait_acks().await;
+            let mut u = self.unsettled.lock();
+            self.reap(&mut u);
+            if !u.diverged {
+                return Ok(self.in_background(&mut u, answer, planned, changed));
             }
         }
-        let (ack, pool) = self.send(msg).await?;
+        let (ack, pool) = self.answered(answer).await?;
         // The acks come in order: every end sent before is answered too, and `pool` is the
         // server's with all of them, which replaces whatever this copy planned.
         {

@@ -7,6 +7,7 @@ mod connection;
 mod driver;
 mod engine;
 mod follow;
+mod shared;
 mod wire;
 
 pub(crate) use connection::Connection;
