@@ -339,7 +339,7 @@ impl TaskHandle {
     /// store out of reach leaves this server's pool (with a warning), as for every step.
     pub async fn catch_up_with_store(&self) {
         match self.store.load_pool(&self.key).await {
-            Ok(Some(pool)) => self.publish(Arc::new(pool)),
+            Ok(Some(pool)) => self.refresh(pool),
             Ok(None) => {}
             Err(e) => {
                 tracing::warn!(task = %self.key, error = %e, "could not read the task's pool from the store; going on with this server's")
