@@ -1,9 +1,9 @@
 //! Tenant quotas over replicas sharing one Redis store (docs/deployment.md, "Quotas with
 //! replicas"): two real `tamrm` binaries on one real redis-server. A stream on one
 //! replica takes the tenant's slot on the other (Shape and Follow alike), a replica
-//! killed with SIGKILL gives its slots back within the lease time, the steps per second
-//! of both replicas together stay within the one bucket, and racing creates on both make
-//! exactly `max_tasks` tasks.
+//! killed with SIGKILL gives its slots back within the lease time and one stopped
+//! gracefully at once, the steps per second of both replicas together stay within the
+//! one bucket, and racing creates on both make exactly `max_tasks` tasks.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -134,6 +134,47 @@ async fn the_stream_quota_holds_over_replicas_and_a_dead_replicas_leases_expire(
     let e = open(&mut cb, Some(&q), "t", 1).await.unwrap_err();
     assert_eq!(e.code(), Code::Unavailable, "{e:?}");
     assert!(e.message().contains("max_open_streams"), "{}", e.message());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_replica_stopped_gracefully_gives_its_leases_back_at_once() {
+    let redis = RedisServer::start();
+    let dir = tempfile::tempdir().unwrap();
+    let keys = key_file(
+        dir.path(),
+        &[("q", "writer")],
+        "[tenants.q]\nmax_open_streams = 1\n",
+    );
+    let q = key("q", "writer");
+    // Leases of a minute: none expires while the test runs.
+    let replica = || {
+        Binary::start(&[
+            "--store",
+            &redis.url(),
+            "--api-keys",
+            keys.to_str().unwrap(),
+            "--store-lease-ms",
+            "60000",
+        ])
+    };
+    let (a, b) = (replica(), replica());
+    let (mut ca, mut cb) = (connect(a.addr).await, connect(b.addr).await);
+    call(&mut ca, "CreateTask", Some(&q), "t").await.unwrap();
+    let (tx, mut rx) = open(&mut ca, Some(&q), "t", 1).await.unwrap();
+    step(&tx, &mut rx, batch(&[1], &[1.0], &[false]))
+        .await
+        .unwrap();
+    let e = open(&mut cb, Some(&q), "t", 1).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+
+    // A rolling restart: A stops with the stream open, which it ends; its lease is given
+    // back as it goes, so the learner's stream moves to B at once, not a lease time later.
+    let (status, log) = tokio::task::spawn_blocking(move || a.terminate())
+        .await
+        .unwrap();
+    assert!(status.success(), "{status:?}: {log}");
+    drop((tx, rx));
+    open_when_free(&mut cb, &q, "t", Duration::from_secs(10)).await;
 }
 
 /// How one client fared sending batches as fast as it could: entries accepted, batches
