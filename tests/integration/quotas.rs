@@ -19,8 +19,13 @@ const LEASE_MS: u64 = 1500;
 
 /// A replica: the real binary on `redis`'s store with the key file `keys`.
 fn replica(redis: &RedisServer, keys: &Path) -> Binary {
+    replica_leasing(redis, keys, LEASE_MS)
+}
+
+/// A replica whose stream leases last `lease_ms`.
+fn replica_leasing(redis: &RedisServer, keys: &Path, lease_ms: u64) -> Binary {
     let url = redis.url();
-    let lease = LEASE_MS.to_string();
+    let lease = lease_ms.to_string();
     Binary::start(&[
         "--store",
         &url,
@@ -65,9 +70,21 @@ async fn open_when_free(
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_stream_quota_holds_over_replicas_and_a_dead_replicas_leases_expire() {
-    let mut redis = RedisServer::start();
+/// Two replicas A and B with leases of `lease_ms`, a tenant of one open stream (key
+/// `q`) and its task `t`, and a Shape stream on A that holds the tenant's slot.
+struct OneSlot {
+    redis: RedisServer,
+    _dir: tempfile::TempDir,
+    q: String,
+    a: Binary,
+    b: Binary,
+    ca: Client,
+    cb: Client,
+    held: Shape,
+}
+
+async fn one_slot_held_on_a(lease_ms: u64) -> OneSlot {
+    let redis = RedisServer::start();
     let dir = tempfile::tempdir().unwrap();
     let keys = key_file(
         dir.path(),
@@ -75,16 +92,40 @@ async fn the_stream_quota_holds_over_replicas_and_a_dead_replicas_leases_expire(
         "[tenants.q]\nmax_open_streams = 1\n",
     );
     let q = key("q", "writer");
-    let a = replica(&redis, &keys);
-    let b = replica(&redis, &keys);
-    let (mut ca, mut cb) = (connect(a.addr).await, connect(b.addr).await);
+    let a = replica_leasing(&redis, &keys, lease_ms);
+    let b = replica_leasing(&redis, &keys, lease_ms);
+    let (mut ca, cb) = (connect(a.addr).await, connect(b.addr).await);
     call(&mut ca, "CreateTask", Some(&q), "t").await.unwrap();
-
-    // A Shape stream on A takes the tenant's one slot on B too, for both kinds of stream.
     let (tx, mut rx) = open(&mut ca, Some(&q), "t", 1).await.unwrap();
     step(&tx, &mut rx, batch(&[1], &[1.0], &[false]))
         .await
         .unwrap();
+    OneSlot {
+        redis,
+        _dir: dir,
+        q,
+        a,
+        b,
+        ca,
+        cb,
+        held: (tx, rx),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_stream_quota_holds_over_replicas_and_a_dead_replicas_leases_expire() {
+    let OneSlot {
+        mut redis,
+        _dir,
+        q,
+        a,
+        b: _b,
+        mut ca,
+        mut cb,
+        held: (tx, rx),
+    } = one_slot_held_on_a(LEASE_MS).await;
+
+    // A Shape stream on A takes the tenant's one slot on B too, for both kinds of stream.
     let e = open(&mut cb, Some(&q), "t", 1).await.unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
     assert!(
@@ -138,32 +179,18 @@ async fn the_stream_quota_holds_over_replicas_and_a_dead_replicas_leases_expire(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_replica_stopped_gracefully_gives_its_leases_back_at_once() {
-    let redis = RedisServer::start();
-    let dir = tempfile::tempdir().unwrap();
-    let keys = key_file(
-        dir.path(),
-        &[("q", "writer")],
-        "[tenants.q]\nmax_open_streams = 1\n",
-    );
-    let q = key("q", "writer");
-    // Leases of a minute: none expires while the test runs.
-    let replica = || {
-        Binary::start(&[
-            "--store",
-            &redis.url(),
-            "--api-keys",
-            keys.to_str().unwrap(),
-            "--store-lease-ms",
-            "60000",
-        ])
-    };
-    let (a, b) = (replica(), replica());
-    let (mut ca, mut cb) = (connect(a.addr).await, connect(b.addr).await);
-    call(&mut ca, "CreateTask", Some(&q), "t").await.unwrap();
-    let (tx, mut rx) = open(&mut ca, Some(&q), "t", 1).await.unwrap();
-    step(&tx, &mut rx, batch(&[1], &[1.0], &[false]))
-        .await
-        .unwrap();
+    // Leases of a minute: none expires while the test runs. (Every part is bound: what
+    // a `..` leaves would be dropped here, Redis and B with it.)
+    let OneSlot {
+        redis: _redis,
+        _dir,
+        q,
+        a,
+        b: _b,
+        ca: _ca,
+        mut cb,
+        held,
+    } = one_slot_held_on_a(60_000).await;
     let e = open(&mut cb, Some(&q), "t", 1).await.unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
 
@@ -173,7 +200,7 @@ async fn a_replica_stopped_gracefully_gives_its_leases_back_at_once() {
         .await
         .unwrap();
     assert!(status.success(), "{status:?}: {log}");
-    drop((tx, rx));
+    drop(held);
     open_when_free(&mut cb, &q, "t", Duration::from_secs(10)).await;
 }
 
