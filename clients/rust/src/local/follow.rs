@@ -18,7 +18,6 @@
 //! the stream (as a remote session's `Shape` stream ends); re-opening it (`restart`)
 //! follows the task again from a fresh snapshot, with a new driver.
 
-use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -32,43 +31,9 @@ use tonic::{Code, Status};
 
 use super::connection::Connection;
 use super::driver::{drive, Answer, Outgoing};
+use super::plans::Unsettled;
 use super::shared::Shared;
 use super::wire::{end_proto, pool_from};
-
-/// An end (a message of ends) committed without waiting for its ack, and what the
-/// learner planned of it.
-struct InFlight {
-    answer: Answer,
-    /// The planned outcome of each end (whether it changed the pool)...
-    changed: Vec<bool>,
-    /// ...and the version the plan reached: the ack must say the same, or the learner's
-    /// copy went its own way (another learner's change came first at the server).
-    version: u64,
-}
-
-impl InFlight {
-    fn changes(&self) -> usize {
-        self.changed.iter().filter(|&&c| c).count()
-    }
-}
-
-/// The ends committed without waiting for their acks, in the order they were sent.
-#[derive(Default)]
-struct Unsettled {
-    in_flight: VecDeque<InFlight>,
-    /// The first failure of one of them not yet reported (for the session's next step).
-    failed: Option<Status>,
-    /// An ack did not match its plan (or an end failed): the learner's copy holds a change
-    /// the server did not make, and takes the server's pool once nothing is in flight.
-    diverged: bool,
-}
-
-impl Unsettled {
-    /// The changes planned by the ends still in flight.
-    fn changes(&self) -> usize {
-        self.in_flight.iter().map(InFlight::changes).sum()
-    }
-}
 
 /// A store that follows one task of a server (SPEC §13).
 pub(crate) struct FollowStore {
@@ -225,28 +190,6 @@ impl FollowStore {
         }
     }
 
-    /// The commit of ends answered with their plan while their ack travels.
-    fn in_background(
-        &self,
-        u: &mut Unsettled,
-        answer: Answer,
-        planned: Pool,
-        changed: Vec<bool>,
-    ) -> Committed {
-        let pool = Arc::new(planned);
-        u.in_flight.push_back(InFlight {
-            answer,
-            changed: changed.clone(),
-            version: pool.version(),
-        });
-        Committed {
-            version: pool.version(),
-            pool,
-            changed,
-            resent: 0,
-        }
-    }
-
     /// Takes the answers that came for the ends in flight (in order: the acks do): an
     /// ack that differs from its plan marks the copy diverged, a failure is kept for the
     /// session's next step (and diverges the copy too: its change was not made).
@@ -373,21 +316,19 @@ impl Store for FollowStore {
 
     /// Sends the ends and the steps shaped since the last message.
     ///
-    /// While the changes planned by the ends in flight (not yet acknowledged) and by
-    /// these come to at most one, it answers the plan without waiting: the learner shapes
-    /// on against it while the ack travels. The server's version after these ends is then
-    /// never below the plan's: others' changes only add versions, and the one change it
-    /// might decide otherwise is matched by the other's that made it do so; on the same
-    /// pool it decides the same, so a learner alone shapes as a `Shape` stream, bit for
-    /// bit, and never waits for an end that leaves the pool as it is. An ack that differs
-    /// from its plan marks the copy diverged; the session then takes the server's pool
-    /// once nothing is in flight ([`FollowStore::poll`]). The ends are sent at once in
-    /// every case. One change planned while one is in flight waits for the acks in flight
-    /// (already on their way), not for its own: if they match their plans, the pool it was
-    /// planned against is the server's, and it is answered with its plan as above.
-    /// Anything else (several changes in these ends, a diverged copy) waits for the pool
-    /// the server made of these ends, with every change made before, by anyone, and the
-    /// registry publishes that.
+    /// The ends are sent at once. When [`Unsettled::may_plan`] allows (at most one
+    /// planned change unanswered, or only inserts into a pool with room for them twice
+    /// over), it answers their plan without waiting: the learner shapes on against it
+    /// while the ack travels, and the server's version after these ends is never below
+    /// the plan's. On the same pool the server decides the same, so a learner alone
+    /// shapes as a `Shape` stream, bit for bit. An ack that differs from its plan marks
+    /// the copy diverged; the session then takes the server's pool once nothing is in
+    /// flight ([`FollowStore::poll`]). One change planned while one is in flight
+    /// otherwise waits for the acks in flight (already on their way), not for its own: if
+    /// they match their plans, the pool it was planned against is the server's, and it
+    /// is answered with its plan. Anything else (several changes that may be refused, a
+    /// diverged copy) waits for the pool the server made of these ends, with every change
+    /// made before, by anyone, and the registry publishes that.
     async fn commit(
         &self,
         _: &str,
@@ -407,8 +348,8 @@ impl Store for FollowStore {
         let certify = {
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
-            if !u.diverged && u.changes() + planned_changes <= 1 {
-                return Ok(self.in_background(&mut u, answer, planned, changed));
+            if u.may_plan(&base, &planned, planned_changes) {
+                return Ok(u.plan(answer, &base, planned, changed));
             }
             !u.diverged && planned_changes == 1
         };
@@ -418,8 +359,8 @@ impl Store for FollowStore {
             self.wait_acks().await;
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
-            if !u.diverged {
-                return Ok(self.in_background(&mut u, answer, planned, changed));
+            if u.may_plan(&base, &planned, planned_changes) {
+                return Ok(u.plan(answer, &base, planned, changed));
             }
         }
         let (ack, pool) = self.answered(answer).await?;

@@ -7,6 +7,7 @@ mod connection;
 mod driver;
 mod engine;
 mod follow;
+mod plans;
 mod shared;
 mod wire;
 
