@@ -317,16 +317,16 @@ impl Store for FollowStore {
     /// Sends the ends and the steps shaped since the last message.
     ///
     /// The ends are sent at once. When [`Unsettled::may_plan`] allows (at most one
-    /// planned change unanswered, or only inserts into a pool with room for them twice
-    /// over), it answers their plan without waiting: the learner shapes on against it
+    /// planned change unanswered, or only inserts into a pool with room), it answers
+    /// their plan without waiting: the learner shapes on against it
     /// while the ack travels, and the server's version after these ends is never below
     /// the plan's. On the same pool the server decides the same, so a learner alone
     /// shapes as a `Shape` stream, bit for bit. An ack that differs from its plan marks
     /// the copy diverged; the session then takes the server's pool once nothing is in
-    /// flight ([`FollowStore::poll`]). One change planned while one is in flight
-    /// otherwise waits for the acks in flight (already on their way), not for its own: if
-    /// they match their plans, the pool it was planned against is the server's, and it
-    /// is answered with its plan. Anything else (several changes that may be refused, a
+    /// flight ([`FollowStore::poll`]). Otherwise one change planned while others are in
+    /// flight waits for their acks (already on their way), not for its own: if they
+    /// match their plans, the pool it was planned against is the server's, and it is
+    /// answered with its plan. Anything else (several changes that may be refused, a
     /// diverged copy) waits for the pool the server made of these ends, with every change
     /// made before, by anyone, and the registry publishes that.
     async fn commit(
@@ -354,8 +354,8 @@ impl Store for FollowStore {
             !u.diverged && planned_changes == 1
         };
         if certify {
-            // One change in flight and one planned: the acks in flight, on their way,
-            // certify the pool these ends were planned against (or refute it).
+            // One change planned, others in flight: their acks, on their way, certify
+            // the pool these ends were planned against (or refute it).
             self.wait_acks().await;
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
