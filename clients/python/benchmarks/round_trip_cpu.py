@@ -44,7 +44,7 @@ from overhead import TcpFloor  # type: ignore[import-not-found]  # this director
 import tamrm
 
 
-def _spin(seconds: float) -> None:
+def spin(seconds: float) -> None:
     """Keep the CPU busy for ``seconds``, as a training step does."""
     end = time.perf_counter() + seconds
     while time.perf_counter() < end:
@@ -70,7 +70,7 @@ def _timed(step: Callable[[], Any], steps: int, gap: float, warmup: int) -> dict
     lat = []
     cpu = 0.0
     for _ in range(steps):
-        _spin(gap)
+        spin(gap)
         c0 = time.thread_time()
         t0 = time.perf_counter()
         step()

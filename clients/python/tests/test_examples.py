@@ -97,6 +97,26 @@ def test_overhead_benchmark_smoke(server_binary: str) -> None:
     assert "DIFFERED" not in out, out
 
 
+def test_episode_ends_benchmark_smoke(server_binary: str) -> None:
+    out = _run(
+        [
+            str(CLIENT / "benchmarks" / "episode_ends.py"),
+            "--rounds",
+            "1",
+            "--steps",
+            "200",
+            "--gap-us",
+            "0",
+        ],
+        server_binary,
+    )
+    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    assert set(rows) >= {"engine", "local", "local-dir", "local-shm"}, out
+    for name in ("engine", "local", "local-dir", "local-shm"):
+        cells = [float(c) for c in rows[name].split("|")[2:7]]
+        assert all(c > 0 for c in cells), out
+
+
 def test_round_trip_cpu_benchmark_smoke(server_binary: str) -> None:
     out = _run(
         [
