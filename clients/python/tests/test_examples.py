@@ -65,6 +65,11 @@ def test_pettingzoo_sb3_example_quick(server_binary: str) -> None:
     assert all(" 384 steps shaped" in t for t in tasks), out
 
 
+def _table_rows(out: str) -> dict[str, str]:
+    """The rows of the markdown tables in ``out``, by their first cell."""
+    return {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+
+
 def test_overhead_benchmark_smoke(server_binary: str) -> None:
     out = _run(
         [
@@ -110,7 +115,7 @@ def test_episode_ends_benchmark_smoke(server_binary: str) -> None:
         ],
         server_binary,
     )
-    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    rows = _table_rows(out)
     assert set(rows) >= {"engine", "local", "local-dir", "local-shm"}, out
     for name in ("engine", "local", "local-dir", "local-shm"):
         cells = [float(c) for c in rows[name].split("|")[2:7]]
@@ -133,7 +138,7 @@ def test_round_trip_cpu_benchmark_smoke(server_binary: str) -> None:
         ],
         server_binary,
     )
-    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    rows = _table_rows(out)
     assert set(rows) >= {"tcp", "remote", "engine"}, out
     # Every variant measured something; only the remote one has a server.
     cells = {name: [c.strip() for c in row.split("|")[2:6]] for name, row in rows.items()}
