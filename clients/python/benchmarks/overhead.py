@@ -20,7 +20,9 @@ to a local server without ``--data-dir``), ``remote-poll`` (the same with
 ``--worker-threads 1``) and ``remote-dir`` (to a local server with ``--data-dir``),
 ``local`` and ``local-dir`` (the same servers, sessions opened with ``local=True``: steps
 shaped in-process against a followed pool, only episode ends sent; the run also prints the
-messages the servers received per env step, from their metrics); with
+messages the servers received per env step, from their metrics), ``local-far`` and
+``remote-far`` (``local-dir`` and ``remote-dir`` with the server "on another machine": a
+proxy process, ``slow_proxy.py``, delays each direction by ``--far-ms``); with
 ``--server ADDR`` the remote variants are replaced by one, ``server``, on that address.
 Each run uses a fresh task (created before, deleted after the timing). ``tcp-floor`` is
 the floor of every remote variant: no shaping, but one TCP round trip per vector step, of
@@ -81,6 +83,8 @@ VARIANTS = (
     "remote-dir",
     "local",
     "local-dir",
+    "local-far",
+    "remote-far",
     "tcp-floor",
     "wrapper-floor",
     "engine-novalues",
@@ -100,6 +104,8 @@ LABELS = {
     "remote-dir": "Client, server --data-dir",
     "local": "Client session(local=True), server in memory",
     "local-dir": "Client session(local=True), server --data-dir",
+    "local-far": "Client session(local=True), server --data-dir, {far}",
+    "remote-far": "Client, server --data-dir, {far}",
     "server": "Client, --server",
 }
 
@@ -184,6 +190,20 @@ class Local:
             for line in text.splitlines()
             if line.startswith("grpc_server_msg_received_total") and 'grpc_method="Follow"' in line
         )
+
+
+@contextlib.contextmanager
+def slow_path(target: str, delay_ms: float) -> Iterator[str]:
+    """A ``slow_proxy.py`` process in front of ``target``; yields its address."""
+    script = Path(__file__).with_name("slow_proxy.py")
+    args = [sys.executable, str(script), target, "--delay-ms", str(delay_ms)]
+    with subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) as p:
+        assert p.stdin is not None and p.stdout is not None
+        try:
+            yield p.stdout.readline().strip()
+        finally:
+            p.stdin.close()
+            p.wait(10)
 
 
 def _free_port() -> int:
@@ -346,11 +366,13 @@ def a2c_turns(
     zero_weights: bool,
     turn: int,
     rotation: int,
-) -> dict[str, tuple[float, float]]:
-    """Per variant of ``backends``: seconds and fingerprint of an A2C ``learn(timesteps)``
-    run in turns, all in this process: every variant's model learns ``turn`` timesteps
-    in its turn (``learn(turn, reset_num_timesteps=False)``), the order of the turns
-    rotated by one each time (starting at ``rotation``). The machine's speed drifts by
+) -> dict[str, tuple[float, float, float]]:
+    """Per variant of ``backends``: seconds, fingerprint and the seconds the learning
+    thread spent off the CPU (its wall time less its CPU time: waiting for a server,
+    or preempted) of an A2C ``learn(timesteps)`` run in turns, all in this process:
+    every variant's model learns ``turn`` timesteps in its turn
+    (``learn(turn, reset_num_timesteps=False)``), the order of the turns rotated by one
+    each time (starting at ``rotation``). The machine's speed drifts by
     tens of percent over seconds here; turns of a few hundred milliseconds put every
     variant under the same drift, which interleaving whole runs does not. Each model keeps
     its own random state (torch, numpy, random) across turns, so it learns exactly what it
@@ -368,6 +390,7 @@ def a2c_turns(
             models[name], _ = _a2c_model(stack, backends[name], num_envs, zero_weights)
             rng[name] = (torch.get_rng_state(), np.random.get_state(), random.getstate())
         elapsed = dict.fromkeys(names, 0.0)
+        off_cpu = dict.fromkeys(names, 0.0)
         for i in range(-(-timesteps // turn)):
             order = names[(rotation + i) % len(names) :] + names[: (rotation + i) % len(names)]
             for name in order:
@@ -376,11 +399,13 @@ def a2c_turns(
                 np.random.set_state(np_state)
                 random.setstate(py_state)
                 steps = min(turn, timesteps - i * turn)
-                start = time.perf_counter()
+                start, cpu = time.perf_counter(), time.thread_time()
                 models[name].learn(steps, reset_num_timesteps=False)
-                elapsed[name] += time.perf_counter() - start
+                wall = time.perf_counter() - start
+                elapsed[name] += wall
+                off_cpu[name] += wall - (time.thread_time() - cpu)
                 rng[name] = (torch.get_rng_state(), np.random.get_state(), random.getstate())
-        return {name: (elapsed[name], _fingerprint(models[name])) for name in names}
+        return {name: (elapsed[name], _fingerprint(models[name]), off_cpu[name]) for name in names}
 
 
 def interleaved(
@@ -429,8 +454,16 @@ def main() -> None:
         "--variants",
         help=f"comma-separated subset of {','.join(VARIANTS)} (plain is always run)",
     )
+    parser.add_argument(
+        "--far-ms",
+        type=float,
+        default=1.0,
+        help="the *-far variants: delay of each direction between learner and server (ms)",
+    )
     parser.add_argument("--quick", action="store_true", help="small sizes, 2 repeats")
     ns = parser.parse_args()
+    far = f"{ns.far_ms:g} ms each way"
+    labels = {name: label.format(far=far) for name, label in LABELS.items()}
     if ns.quick:
         ns.repeats, ns.steps, ns.a2c_timesteps, ns.a2c_weights = 2, 300, 4000, "zero"
     variants = list(VARIANTS) if not ns.variants else ["plain", *ns.variants.split(",")]
@@ -463,15 +496,22 @@ def main() -> None:
             elif name == "remote-dir":
                 server = stack.enter_context(tamrm.local_server())
                 backends[name] = stack.enter_context(tamrm.Client(server.address))
-            elif name in ("local", "local-dir"):
+            elif name in ("local", "local-dir", "local-far"):
                 metrics = f"127.0.0.1:{_free_port()}"
                 server = stack.enter_context(
                     tamrm.local_server(
                         in_memory=name == "local", args=["--metrics-listen", metrics]
                     )
                 )
-                client = stack.enter_context(tamrm.Client(server.address))
+                address = server.address
+                if name == "local-far":
+                    address = stack.enter_context(slow_path(address, ns.far_ms))
+                client = stack.enter_context(tamrm.Client(address))
                 backends[name] = Local(client, metrics)
+            elif name == "remote-far":
+                server = stack.enter_context(tamrm.local_server())
+                address = stack.enter_context(slow_path(server.address, ns.far_ms))
+                backends[name] = stack.enter_context(tamrm.Client(address))
             elif name == "server":
                 backends[name] = stack.enter_context(tamrm.Client(ns.server))
             elif name == "tcp-floor":
@@ -483,6 +523,7 @@ def main() -> None:
 
         # (workload, vector steps per run, variant -> samples)
         tables: list[tuple[str, int, dict[str, list[float]], int]] = []
+        off_cpu: list[str] = []
         n, steps = ns.num_envs, ns.steps
         if not ns.no_loop:
             for with_values in (False, True) if ns.value_fn else (False,):
@@ -511,14 +552,16 @@ def main() -> None:
 
                 if ns.a2c_turn > 0:
                     samples = {name: [] for name in variants}
+                    waited: dict[str, list[float]] = {name: [] for name in variants}
                     for r in range(-1, ns.repeats):  # round -1: the warm-up
                         timed = a2c_turns(
                             {v: backends[v] for v in variants}, k, ts, zero, ns.a2c_turn, r
                         )
-                        for name, (secs, fingerprint) in timed.items():
+                        for name, (secs, fingerprint, off) in timed.items():
                             prints.setdefault(name, set()).add(fingerprint)
                             if r >= 0:
                                 samples[name].append(secs)
+                                waited[name].append(off)
                         print(f"a2c {form} round {r + 1}: {timed}", file=sys.stderr)
                 else:
                     samples = interleaved(variants, ns.repeats, run, f"a2c {form}")
@@ -533,6 +576,15 @@ def main() -> None:
                     label += " (learning DIFFERED)"
                 tables.append((label, ts // k, samples, ts))
                 load.append(os.getloadavg())
+                if ns.a2c_turn > 0:
+                    off_cpu.append(
+                        f"{label}: the learning thread off the CPU (wall less CPU time), "
+                        "median ms per run: "
+                        + ", ".join(
+                            f"{labels[v]} {statistics.median(waited[v]) * 1e3:.0f}"
+                            for v in variants
+                        )
+                    )
 
         # Read while the servers run: messages they received per env step.
         messages = []
@@ -542,7 +594,7 @@ def main() -> None:
                 received = backend.messages_received()
                 steps = STEPS_SHAPED[backend]
                 messages.append(
-                    f"{LABELS[name]}: the server received {received:,.0f} Follow messages "
+                    f"{labels[name]}: the server received {received:,.0f} Follow messages "
                     f"for {steps:,} env steps: 1/{steps / max(received, 1):,.0f} per env step"
                 )
 
@@ -551,7 +603,7 @@ def main() -> None:
         f"{platform.python_version()}; {ns.repeats} interleaved repeats after 1 warm-up; "
         f"load average (1 min) {min(x[0] for x in load):.1f}-{max(x[0] for x in load):.1f}\n"
     )
-    for line in messages:
+    for line in messages + off_cpu:
         print(line)
     print(
         "| workload | variant | median time (s) | env steps/s | overhead (median of "
@@ -571,7 +623,7 @@ def main() -> None:
                 over = f"{ratio * 100:+.1f}%"
                 per_step = f"{(med - base_med) / vector_steps * 1e6:+.0f} µs"
             print(
-                f"| {workload} | {LABELS[name]} | {med:.3f} | {env_steps / med:,.0f} "
+                f"| {workload} | {labels[name]} | {med:.3f} | {env_steps / med:,.0f} "
                 f"| {over} | {per_step} |"
             )
 

@@ -96,6 +96,10 @@ def test_overhead_benchmark_smoke(server_binary: str) -> None:
     assert "Client(busy_poll_us=200), server in memory, --worker-threads 1" in out
     assert "floor: a pass-through wrapper, no shaping" in out
     assert "Engine, in memory, no values bound" in out
+    # The server "on another machine": a delaying proxy process between them.
+    assert "Client session(local=True), server --data-dir, 1 ms each way" in out
+    assert "Client, server --data-dir, 1 ms each way" in out
+    assert "the learning thread off the CPU" in out
     assert "learning DIFFERED" not in out
     # With alpha = beta = 0 every backend's run learns what the plain run learns.
     assert "(same learning)" in out and "default weights" in out
