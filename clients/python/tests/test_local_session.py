@@ -400,10 +400,12 @@ def test_two_changes_planned_against_a_stale_pool_are_never_shaped_with(
 def test_a_second_change_waits_for_the_first_ack_not_for_its_own(
     remote_client: tamrm.Client, task_id: str
 ) -> None:
-    """A replacement planned while another change is in flight is sent at once, and its
-    step waits for the first one's ack (already on its way), which certifies the pool it
-    was planned against, not for its own: the step returns while its end is still on the
-    slow path to the server, with the version a ``Shape`` stream would report."""
+    """A replacement that one change of another learner could make the server refuse
+    (it beats only the lowest score), planned while another change is in flight, is sent
+    at once, and its step waits for the first one's ack (already on its way), which
+    certifies the pool it was planned against, not for its own: the step returns while
+    its end is still on the slow path to the server, with the version a ``Shape`` stream
+    would report."""
     config = {"num_actions": 3, "pool_capacity": 2, "k": 2, "start_step": 0, "min_pool_size": 1}
     remote_client.create_task(task_id, **config)
     for score in (0.0, 0.5):  # a full pool: every change below replaces
@@ -417,7 +419,7 @@ def test_a_second_change_waits_for_the_first_ack_not_for_its_own(
             assert first.pool_version == 3  # answered at once
             time.sleep(0.75)  # the second end reaches the server 0.75 s after the first
             learner.step([1], [1.0])
-            second = learner.step([1], [1.0], [True], episode_scores=[2.0])
+            second = learner.step([1], [1.0], [True], episode_scores=[0.7])
             assert second.pool_version == 4  # waited for the first's ack
             assert remote_client.get_task(task_id).stats.episodes_completed == 1
             assert client.get_task(task_id).stats.episodes_completed == 2  # waits for the acks
@@ -449,6 +451,42 @@ def test_inserts_into_a_pool_with_room_never_wait(
             learner.close()
             client.close()
     assert remote_client.get_pool(task_id).pool_version == 6
+
+
+def test_replacements_far_above_the_lowest_scores_never_wait(
+    remote_client: tamrm.Client, task_id: str
+) -> None:
+    """Replacements that each beat more of the pool than there are changes unanswered
+    (a learner that improves) never wait for the server: as many changes of others as
+    that could not make the server refuse one, and more would leave it at a version no
+    lower. Replacements that beat only the lowest score of the same pool wait."""
+    config = {"num_actions": 3, "pool_capacity": 8, "k": 2, "start_step": 0, "min_pool_size": 1}
+    remote_client.create_task(task_id, **config)
+    for score in range(8):  # a full pool of low scores: every change below replaces
+        remote_client.add_trajectory(task_id, [1, 1], float(score))
+    with SlowProxy(remote_client.target, delay=0.0, up_delay=1.5) as proxy:
+        client = tamrm.Client(proxy.address)
+        learner = client.session(task_id, 2, local=True)
+        try:
+            versions = []
+            for high in (100.0, 200.0):
+                learner.step([1, 1], [1.0, 1.0])
+                ended = learner.step([1, 1], [1.0] * 2, [True] * 2, episode_scores=[high] * 2)
+                versions.append(ended.pool_version)
+            assert versions == [10, 12]
+            assert remote_client.get_task(task_id).stats.episodes_completed == 0  # on the way
+            learner.step([1, 1], [1.0, 1.0])
+            started = time.monotonic()
+            # 4.5 and 5.5 beat only the lowest scores left (4, then 4.5): they wait.
+            low = learner.step([1, 1], [1.0] * 2, [True] * 2, episode_scores=[4.5, 5.5])
+            assert time.monotonic() - started > 0.5
+            assert low.pool_version == 14
+        finally:
+            learner.close()
+            client.close()
+    pool = remote_client.get_pool(task_id)
+    assert pool.pool_version == 14
+    assert sorted(t.score for t in pool.trajectories) == [5, 5.5, 6, 7, 100, 100, 200, 200]
 
 
 def test_a_snapshot_behind_an_unanswered_end_does_not_take_the_session_back(

@@ -31,7 +31,7 @@ use tonic::{Code, Status};
 
 use super::connection::Connection;
 use super::driver::{drive, Answer, Outgoing};
-use super::plans::Unsettled;
+use super::plans::{Plan, Unsettled};
 use super::shared::Shared;
 use super::wire::{end_proto, pool_from};
 
@@ -317,18 +317,19 @@ impl Store for FollowStore {
     /// Sends the ends and the steps shaped since the last message.
     ///
     /// The ends are sent at once. When [`Unsettled::may_plan`] allows (at most one
-    /// planned change unanswered, or only inserts into a pool with room), it answers
-    /// their plan without waiting: the learner shapes on against it
-    /// while the ack travels, and the server's version after these ends is never below
-    /// the plan's. On the same pool the server decides the same, so a learner alone
-    /// shapes as a `Shape` stream, bit for bit. An ack that differs from its plan marks
-    /// the copy diverged; the session then takes the server's pool once nothing is in
-    /// flight ([`FollowStore::poll`]). Otherwise one change planned while others are in
-    /// flight waits for their acks (already on their way), not for its own: if they
-    /// match their plans, the pool it was planned against is the server's, and it is
-    /// answered with its plan. Anything else (several changes that may be refused, a
-    /// diverged copy) waits for the pool the server made of these ends, with every change
-    /// made before, by anyone, and the registry publishes that.
+    /// planned change unanswered, only inserts into a pool with room, or changes that
+    /// outlast as many changes of others as are unanswered), it answers their plan
+    /// without waiting: the learner shapes on against it while the ack travels, and the
+    /// server's version after these ends is never below the plan's. On the same pool the
+    /// server decides the same, so a learner alone shapes as a `Shape` stream, bit for
+    /// bit. An ack that differs from its plan marks the copy diverged; the session then
+    /// takes the server's pool once nothing is in flight ([`FollowStore::poll`]).
+    /// Otherwise ends planned while others are in flight wait for those acks (already on
+    /// their way), not for their own: if they match their plans, the pool these were
+    /// planned against is the server's, and the rule is asked again with nothing in
+    /// flight. Anything else (changes that may be refused, a diverged copy) waits for the
+    /// pool the server made of these ends, with every change made before, by anyone,
+    /// and the registry publishes that.
     async fn commit(
         &self,
         _: &str,
@@ -336,31 +337,30 @@ impl Store for FollowStore {
         ops: Vec<PoolOp>,
         counters: Counters,
     ) -> Result<Committed, StoreError> {
-        let (planned, changed) = tamrm::store::apply_ops(&base, ops.clone());
+        let plan = Plan::new(base, &ops);
         let ends = ops
             .into_iter()
             .map(end_proto)
             .collect::<Result<Vec<_>, _>>()
             .map_err(|s| self.failed(s))?;
         let msg = self.message(ends, counters);
-        let planned_changes = changed.iter().filter(|&&c| c).count();
         let answer = self.submit(msg)?;
         let certify = {
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
-            if u.may_plan(&base, &planned, planned_changes) {
-                return Ok(u.plan(answer, &base, planned, changed));
+            if u.may_plan(&plan) {
+                return Ok(u.plan(answer, plan));
             }
-            !u.diverged && planned_changes == 1
+            !u.diverged && !u.in_flight.is_empty()
         };
         if certify {
-            // One change planned, others in flight: their acks, on their way, certify
-            // the pool these ends were planned against (or refute it).
+            // Others in flight: their acks, on their way, certify the pool these ends
+            // were planned against (or refute it).
             self.wait_acks().await;
             let mut u = self.unsettled.lock();
             self.reap(&mut u);
-            if u.may_plan(&base, &planned, planned_changes) {
-                return Ok(u.plan(answer, &base, planned, changed));
+            if u.may_plan(&plan) {
+                return Ok(u.plan(answer, plan));
             }
         }
         let (ack, pool) = self.answered(answer).await?;
