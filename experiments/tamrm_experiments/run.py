@@ -21,6 +21,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
@@ -444,6 +445,9 @@ def _run_sb3(
         shaped.session = client.session(new_id, 1)
 
     algo = {"a2c": A2C, "dqn": DQN}[exp.algo]
+    # SB3 makes a new (here empty) log dir under the temp dir at every learn() unless
+    # $SB3_LOGDIR names one: a grid would leave one per run.
+    os.environ.setdefault("SB3_LOGDIR", os.path.join(tempfile.gettempdir(), "tamrm-sb3-logs"))
     kwargs = _sb3_kwargs(exp.algo_kwargs, spec.budget)
     model = algo("MlpPolicy", shaped, seed=spec.seed, device="cpu", **kwargs)
     shaped.bind_model(model)

@@ -73,6 +73,11 @@ import numpy as np
 import tamrm
 import tamrm.gym
 
+# SB3 makes a new log dir under the temp dir at every learn() unless $SB3_LOGDIR names
+# one; its loggers here print at most, so thousands of turns would leave thousands of
+# empty dirs behind. One dir for every run of these scripts instead.
+os.environ.setdefault("SB3_LOGDIR", os.path.join(tempfile.gettempdir(), "tamrm-sb3-logs"))
+
 VARIANTS = (
     "plain",
     "engine",

@@ -26,6 +26,12 @@ settings.load_profile("ci" if os.environ.get("CI") else "default")
 REPO_ROOT = Path(__file__).resolve().parents[3]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_log_dir(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """One SB3 log dir for the whole run: without one, every learn() makes its own."""
+    os.environ.setdefault("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3-logs")))
+
+
 def _binary() -> str:
     env = os.environ.get("TAMRM_BIN")
     if env:
