@@ -61,7 +61,11 @@ def test_data_dir_survives_restart(tmp_path: Path, server_binary: str) -> None:
 
 
 def test_server_shutdown_surfaces_as_unavailable(server_binary: str) -> None:
-    with tamrm.local_server(binary=server_binary, in_memory=True) as srv, srv.client() as c:
+    # A broken stream is resumed for resume_timeout_secs before it raises: 1 s, not 60.
+    with (
+        tamrm.local_server(binary=server_binary, in_memory=True) as srv,
+        srv.client(resume_timeout_secs=1.0) as c,
+    ):
         assert srv.data_dir is None
         c.create_task("x", num_actions=2)
         session = c.session("x", 1)
