@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # CI for the Python client (clients/python). Idempotent; safe to run repeatedly.
 #
-#   bash clients/python/scripts/ci.sh
+#   bash clients/python/scripts/ci.sh            # install, then check
+#   bash clients/python/scripts/ci.sh install    # the venv and the client only
+#   bash clients/python/scripts/ci.sh check      # lint, types and tests of an installed client
 #
 # - creates (or reuses) the virtualenv $TAMRM_VENV (default: <repo>/.venv),
 # - installs the client with its [dev,sb3,pettingzoo,rllib] extras (editable; maturin
@@ -21,6 +23,11 @@ REPO_ROOT="$(cd "$CLIENT_DIR/../.." && pwd)"
 VENV="${TAMRM_VENV:-$REPO_ROOT/.venv}"
 export TAMRM_BIN="${TAMRM_BIN:-$REPO_ROOT/target/release/tamrm}"
 PYTHON="${PYTHON:-python3}"
+PHASE="${1:-all}"
+case "$PHASE" in
+    all | install | check) ;;
+    *) echo "ci.sh: unknown phase '$PHASE' (all, install or check)" >&2; exit 2 ;;
+esac
 
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 export PYTHONDONTWRITEBYTECODE=1
@@ -33,18 +40,21 @@ if [[ ! -x "$TAMRM_BIN" ]]; then
     exit 1
 fi
 
-step "virtualenv $VENV"
-if [[ ! -x "$VENV/bin/python" ]]; then
-    "$PYTHON" -m venv "$VENV"
+if [[ "$PHASE" != check ]]; then
+    step "virtualenv $VENV"
+    if [[ ! -x "$VENV/bin/python" ]]; then
+        "$PYTHON" -m venv "$VENV"
+    fi
+    "$VENV/bin/python" --version
+
+    step "pip install -e clients/python[dev,sb3,pettingzoo,rllib]"
+    "$VENV/bin/python" -m pip install -q --upgrade pip
+    "$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,pettingzoo,rllib]"
+
+    step "PettingZoo envs for tests/test_pettingzoo.py and examples/pettingzoo_sb3.py (wheels only)"
+    "$VENV/bin/python" -m pip install -q --only-binary=:all: "mpe2>=1.1,<2" "pygame-ce>=2.3"
 fi
-"$VENV/bin/python" --version
-
-step "pip install -e clients/python[dev,sb3,pettingzoo,rllib]"
-"$VENV/bin/python" -m pip install -q --upgrade pip
-"$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,pettingzoo,rllib]"
-
-step "PettingZoo envs for tests/test_pettingzoo.py and examples/pettingzoo_sb3.py (wheels only)"
-"$VENV/bin/python" -m pip install -q --only-binary=:all: "mpe2>=1.1,<2" "pygame-ce>=2.3"
+[[ "$PHASE" == install ]] && exit 0
 
 cd "$CLIENT_DIR"
 
