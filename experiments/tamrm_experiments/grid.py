@@ -8,9 +8,10 @@ import math
 from collections import Counter
 from typing import Any
 
+from tamrm.trial.stats import fmt_interval, t_interval
+
 from tamrm_experiments.configs import ARMS, EXPERIMENTS, runs_variant
 from tamrm_experiments.load import Group, Key, Run, invocations, wanted
-from tamrm_experiments.stats import fmt_interval, t_interval
 from tamrm_experiments.template import block, block_lines
 from tamrm_experiments.verdicts import Analysis, plain_learns
 

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from tamrm.trial.stats import fmt_interval, t_interval
 
 from tamrm_experiments import grid
 from tamrm_experiments.args import EXPERIMENTS_DIR
@@ -19,7 +20,6 @@ from tamrm_experiments.configs import ARMS, EXPERIMENTS, runs_variant
 from tamrm_experiments.envs import MAZE_NEW_START, MAZE_START, maze_shortest_path
 from tamrm_experiments.load import Run, partials
 from tamrm_experiments.plots import plot_experiment
-from tamrm_experiments.stats import fmt_interval, t_interval
 from tamrm_experiments.summary import claims_in_brief, progress
 from tamrm_experiments.template import block, block_lines
 from tamrm_experiments.verdicts import (

@@ -6,10 +6,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+from tamrm.trial.stats import rolling_mean, t_interval
 
 from tamrm_experiments.configs import ARMS, EXPERIMENTS
 from tamrm_experiments.load import Run
-from tamrm_experiments.stats import rolling_mean, t_interval
 
 __all__ = ["curves", "plot_experiment"]
 

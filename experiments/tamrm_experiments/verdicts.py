@@ -13,12 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from tamrm_experiments.configs import EXPERIMENTS
-from tamrm_experiments.envs import random_policy_steps
-from tamrm_experiments.experiments.base import Claim, Metric
-from tamrm_experiments.load import Group, Key, Run, group_runs, load_runs, requested_runs, wanted
-from tamrm_experiments.stats import (
+from tamrm.trial.stats import (
     Interval,
     fisher_p,
     fmt,
@@ -28,6 +23,11 @@ from tamrm_experiments.stats import (
     welch_interval,
     welch_p,
 )
+
+from tamrm_experiments.configs import EXPERIMENTS
+from tamrm_experiments.envs import random_policy_steps
+from tamrm_experiments.experiments.base import Claim, Metric
+from tamrm_experiments.load import Group, Key, Run, group_runs, load_runs, requested_runs, wanted
 
 __all__ = [
     "CENSORABLE",

@@ -2,11 +2,11 @@ import json
 from dataclasses import replace
 
 from synthetic import write_run
+from tamrm.trial.stats import t_interval
 
 from tamrm_experiments.configs import ARMS, make_specs
 from tamrm_experiments.report import load_runs, run_metrics, write_report
 from tamrm_experiments.run import run_paths
-from tamrm_experiments.stats import t_interval
 
 
 def test_report_tables_from_synthetic_runs(tmp_path):

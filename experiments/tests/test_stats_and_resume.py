@@ -4,15 +4,15 @@ import math
 import numpy as np
 import pytest
 from scipy import stats as sps
-
-from tamrm_experiments.configs import make_specs
-from tamrm_experiments.run import is_complete, run_paths
-from tamrm_experiments.stats import (
+from tamrm.trial.stats import (
     first_solved_episode,
     rolling_mean,
     t_interval,
     welch_interval,
 )
+
+from tamrm_experiments.configs import make_specs
+from tamrm_experiments.run import is_complete, run_paths
 
 
 def test_t_interval_matches_scipy():
@@ -128,7 +128,7 @@ def test_busy_minutes_is_the_union_of_invocation_intervals():
 
 
 def test_holm_matches_the_textbook_example():
-    from tamrm_experiments.stats import holm
+    from tamrm.trial.stats import holm
 
     # m = 4: sorted 0.01, 0.02, 0.03, 0.5 -> 0.04, 0.06, 0.06 (monotone), 0.5
     assert holm([0.03, 0.5, 0.01, 0.02]) == pytest.approx([0.06, 0.5, 0.04, 0.06])
@@ -137,7 +137,7 @@ def test_holm_matches_the_textbook_example():
 
 
 def test_welch_and_fisher_p():
-    from tamrm_experiments.stats import fisher_p, welch_p
+    from tamrm.trial.stats import fisher_p, welch_p
 
     a, b = [10.0, 12.0, 9.5, 11.0, 13.5], [7.0, 8.5, 6.0, 9.0, 7.5, 8.0]
     assert welch_p(a, b) == pytest.approx(sps.ttest_ind(a, b, equal_var=False).pvalue)

@@ -6,11 +6,11 @@ from dataclasses import replace
 import pandas as pd
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from tamrm.trial.stats import holm, welch_interval
 
 from tamrm_experiments.configs import make_specs
 from tamrm_experiments.experiments.base import Claim, Metric
 from tamrm_experiments.load import Run
-from tamrm_experiments.stats import holm, welch_interval
 from tamrm_experiments.verdicts import (
     ClaimRow,
     Comparison,

@@ -6,7 +6,7 @@
 #   bash clients/python/scripts/ci.sh check      # lint, types and tests of an installed client
 #
 # - creates (or reuses) the virtualenv $TAMRM_VENV (default: <repo>/.venv),
-# - installs the client with its [dev,sb3,pettingzoo,rllib] extras (editable; maturin
+# - installs the client with its [dev,sb3,trial,pettingzoo,rllib] extras (editable; maturin
 #   compiles the native extension, clients/python/native, from source with the Rust
 #   toolchain; ray[rllib] pins gymnasium for the whole suite, docs/decisions/
 #   rllib-extra-shares-the-ci-venv.md), and the PettingZoo env families the tests and
@@ -47,9 +47,9 @@ if [[ "$PHASE" != check ]]; then
     fi
     "$VENV/bin/python" --version
 
-    step "pip install -e clients/python[dev,sb3,pettingzoo,rllib]"
+    step "pip install -e clients/python[dev,sb3,trial,pettingzoo,rllib]"
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,pettingzoo,rllib]"
+    "$VENV/bin/python" -m pip install -q -e "$CLIENT_DIR[dev,sb3,trial,pettingzoo,rllib]"
 
     step "PettingZoo envs for tests/test_pettingzoo.py and examples/pettingzoo_sb3.py (wheels only)"
     "$VENV/bin/python" -m pip install -q --only-binary=:all: "mpe2>=1.1,<2" "pygame-ce>=2.3"

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
+from tamrm.trial.stats import first_solved_episode
 
 from tamrm_experiments.experiments.base import (
     CLEAN_VARIANTS,
@@ -17,7 +18,6 @@ from tamrm_experiments.experiments.base import (
     Variant,
     mean_or_nan,
 )
-from tamrm_experiments.stats import first_solved_episode
 
 __all__ = ["CARTPOLE", "CartPole"]
 
