@@ -47,6 +47,9 @@ pub struct Pool {
     lens: Vec<usize>,
     xs: Vec<f64>,
     l_min: usize,
+    /// (S_min, S_max), `None` if empty: kept with the other derived quantities, so a step
+    /// reads it in O(1) (`require_score_spread`).
+    score_range: Option<(f64, f64)>,
     /// The trajectories (indices) in the order x descending, then seq ascending (the
     /// order that breaks ties in P), so that a step need not sort by it.
     by_place: Vec<u32>,
@@ -75,6 +78,7 @@ impl Pool {
             lens: Vec::new(),
             xs: Vec::new(),
             l_min: 0,
+            score_range: None,
             by_place: Vec::new(),
             place_of: Vec::new(),
             by_step: Arc::default(),
@@ -202,7 +206,15 @@ impl Pool {
         self.seqs = self.trajectories.iter().map(|t| t.seq).collect();
         self.lens = self.trajectories.iter().map(|t| t.actions.len()).collect();
         self.l_min = self.lens.iter().copied().min().unwrap_or(0);
-        let (lo, hi) = self.score_range().unwrap_or((0.0, 0.0));
+        self.score_range = self
+            .trajectories
+            .iter()
+            .map(|t| t.score)
+            .fold(None, |r, s| {
+                let (lo, hi) = r.unwrap_or((s, s));
+                Some((lo.min(s), hi.max(s)))
+            });
+        let (lo, hi) = self.score_range.unwrap_or((0.0, 0.0));
         self.xs = self
             .trajectories
             .iter()
@@ -530,9 +542,12 @@ impl Pool {
     }
     /// (S_min, S_max), `None` if empty.
     pub fn score_range(&self) -> Option<(f64, f64)> {
-        let mut it = self.trajectories.iter().map(|t| t.score);
-        let first = it.next()?;
-        Some(it.fold((first, first), |(lo, hi), s| (lo.min(s), hi.max(s))))
+        self.score_range
+    }
+    /// Whether the pool's scores differ, S_max > S_min (SPEC v1.3 §3, the condition
+    /// `require_score_spread` adds); false for an empty pool. O(1).
+    pub fn has_score_spread(&self) -> bool {
+        self.score_range.is_some_and(|(lo, hi)| hi > lo)
     }
 }
 

@@ -165,7 +165,8 @@ fn restore_rejects_malformed_pools() {
 
 /// The order an insert derives from the previous one (its sort hint) is the order
 /// `Pool::restore` derives from scratch, through inserts, replacements (the worst
-/// anywhere in seq order), ties of scores and of normalised scores, and resets.
+/// anywhere in seq order), ties of scores and of normalised scores, and resets; so is the
+/// kept score range, and whether the scores differ is read off it.
 #[test]
 fn the_order_after_a_change_is_the_one_derived_from_scratch() {
     let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
@@ -193,6 +194,11 @@ fn the_order_after_a_change_is_the_one_derived_from_scratch() {
             assert_eq!(p.place_of(), fresh.place_of());
             let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(p.xs()), bits(fresh.xs()));
+            let scores = p.trajectories().iter().map(|t| t.score);
+            let range = scores.clone().reduce(f64::min).zip(scores.reduce(f64::max));
+            assert_eq!(p.score_range(), range);
+            assert_eq!(fresh.score_range(), range);
+            assert_eq!(p.has_score_spread(), range.is_some_and(|(lo, hi)| lo < hi));
         }
     }
 }
