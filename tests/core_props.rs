@@ -107,6 +107,8 @@ struct MCfg {
     max_trajectory_len: usize,
     /// SPEC §4 (v1.1): F only where the kNN term is active.
     gate_potential: bool,
+    /// SPEC §3 (v1.3): the kNN term only while the pool's scores differ.
+    require_score_spread: bool,
 }
 
 impl MCfg {
@@ -127,6 +129,7 @@ impl MCfg {
             gamma: Some(self.gamma),
             max_trajectory_len: Some(self.max_trajectory_len as u32),
             gate_potential: Some(self.gate_potential),
+            require_score_spread: Some(self.require_score_spread),
         }
     }
 }
@@ -205,6 +208,8 @@ impl MPool {
 #[derive(Debug, Clone, Copy, Default)]
 struct MKnn {
     active: bool,
+    /// Inactive only because `require_score_spread` found every score equal.
+    no_spread: bool,
     r: f64,
     exact_matches: usize,
     k_below_pool: bool,
@@ -215,12 +220,29 @@ struct MKnn {
 fn model_knn(cfg: &MCfg, pool: &MPool, prefix: &[Act]) -> MKnn {
     let t = prefix.len() - 1;
     let l_min = pool.trajs.iter().map(|tr| tr.actions.len()).min();
+    let s_min = pool
+        .trajs
+        .iter()
+        .map(|t| t.score)
+        .fold(f64::INFINITY, f64::min);
+    let s_max = pool
+        .trajs
+        .iter()
+        .map(|t| t.score)
+        .fold(f64::NEG_INFINITY, f64::max);
     let active = pool.trajs.len() >= cfg.min_pool_size
         && t >= cfg.start_step
         && l_min.is_some_and(|l| t < l)
         && t < cfg.max_trajectory_len;
     if !active {
         return MKnn::default();
+    }
+    // (v1.3) With require_score_spread, also S_max > S_min over the pool (finite scores).
+    if cfg.require_score_spread && s_max <= s_min {
+        return MKnn {
+            no_spread: true,
+            ..MKnn::default()
+        };
     }
     // dis_i(t) = Σ_{j=0..t} δ(a^i_j, a'_j), recomputed over the whole prefix.
     let dis: Vec<f64> = pool
@@ -248,17 +270,7 @@ fn model_knn(cfg: &MCfg, pool: &MPool, prefix: &[Act]) -> MKnn {
         }
         dis.iter().map(|&d| (1.0 / d) / inv_sum).collect()
     };
-    // 2. Normalised scores over the whole pool.
-    let s_min = pool
-        .trajs
-        .iter()
-        .map(|t| t.score)
-        .fold(f64::INFINITY, f64::min);
-    let s_max = pool
-        .trajs
-        .iter()
-        .map(|t| t.score)
-        .fold(f64::NEG_INFINITY, f64::max);
+    // 2. Normalised scores over the whole pool (S_min, S_max above).
     let x: Vec<f64> = pool
         .trajs
         .iter()
@@ -289,6 +301,7 @@ fn model_knn(cfg: &MCfg, pool: &MPool, prefix: &[Act]) -> MKnn {
     }
     MKnn {
         active: true,
+        no_spread: false,
         r: f.exp() - 0.5f64.exp(),
         exact_matches: zero,
         k_below_pool: kk < dis.len(),
@@ -497,20 +510,22 @@ fn config() -> impl Strategy<Value = MCfg> {
                 gamma.clone(),
                 prop_oneof![1usize..=12, 6usize..=12],
                 any::<bool>(),
+                any::<bool>(),
             )
         })
         .prop_map(
-            |(space, capacity, k, start_step, min_pool_size, alpha, beta, gamma, mtl, gate)| MCfg {
+            |(space, cap, k, start, min_pool, alpha, beta, gamma, mtl, gate, spread)| MCfg {
                 space,
-                capacity,
+                capacity: cap,
                 k,
-                start_step,
-                min_pool_size,
+                start_step: start,
+                min_pool_size: min_pool,
                 alpha,
                 beta,
                 gamma,
                 max_trajectory_len: mtl,
                 gate_potential: gate,
+                require_score_spread: spread,
             },
         )
 }
@@ -544,6 +559,10 @@ struct Coverage {
     active_tie_at_cut: usize,
     /// Active steps whose pool holds a trajectory inserted after the episode's first step.
     active_after_mid_episode_insert: usize,
+    /// Steps inactive only because `require_score_spread` found every score equal.
+    no_spread: usize,
+    /// Active steps of tasks with `require_score_spread`.
+    active_with_spread_required: usize,
     inserted: usize,
     replaced: usize,
     discarded: usize,
@@ -559,6 +578,8 @@ impl Coverage {
         self.active_k_below_pool += o.active_k_below_pool;
         self.active_tie_at_cut += o.active_tie_at_cut;
         self.active_after_mid_episode_insert += o.active_after_mid_episode_insert;
+        self.no_spread += o.no_spread;
+        self.active_with_spread_required += o.active_with_spread_required;
         self.inserted += o.inserted;
         self.replaced += o.replaced;
         self.discarded += o.discarded;
@@ -715,8 +736,10 @@ fn run_scenario(sc: &Scenario) -> Result<Coverage, TestCaseError> {
                 prop_assert!(close(exact, got.reward, want.reward), "R_meta: {}", ctx);
 
                 cov.steps += 1;
+                cov.no_spread += usize::from(knn.no_spread);
                 if knn.active {
                     cov.active += 1;
+                    cov.active_with_spread_required += usize::from(c.require_score_spread);
                     cov.active_exact += usize::from(knn.exact_matches > 0);
                     cov.active_k_below_pool += usize::from(knn.k_below_pool);
                     cov.active_tie_at_cut += usize::from(knn.tie_at_cut);
@@ -807,9 +830,11 @@ fn scenarios_cover_the_interesting_cases() {
     println!(
         "{total:#?}\ndiscrete active {discrete_active}, continuous active {continuous_active}"
     );
-    // Observed with this seed: ~17% of 16k steps active (1.6k discrete, 1.1k continuous),
-    // ~500 with exact matches, ~1.4k with k < |D|, ~470 with a P tie at the top-k cut,
-    // ~340 after a mid-episode insert, ~700 replacements, ~1.4k discards, ~90 resets.
+    // Observed with this seed: ~12% of 17k steps active (1.2k discrete, 0.9k continuous),
+    // ~500 with exact matches, ~900 with k < |D|, ~300 with a P tie at the top-k cut,
+    // ~270 after a mid-episode insert, ~800 replacements, ~1.4k discards, ~100 resets;
+    // ~500 steps inactive only for want of a score spread, ~900 active ones with
+    // require_score_spread.
     assert!(total.active * 10 >= total.steps, "{total:?}");
     assert!(discrete_active >= 500 && continuous_active >= 400);
     assert!(total.active_exact >= 200, "{total:?}");
@@ -819,6 +844,8 @@ fn scenarios_cover_the_interesting_cases() {
     assert!(total.active_after_mid_episode_insert >= 150, "{total:?}");
     assert!(total.replaced >= 300 && total.discarded >= 300, "{total:?}");
     assert!(total.resets >= 30, "{total:?}");
+    assert!(total.no_spread >= 200, "{total:?}");
+    assert!(total.active_with_spread_required >= 400, "{total:?}");
 }
 
 // ---------------------------------------------------------------------------------------
@@ -962,6 +989,44 @@ fn start_step_is_the_first_active_step() {
     let out = step(&mut ep, &cfg, &pool, 0);
     assert_eq!((out.step, out.knn_active), (2, true));
     assert_eq!(out.knn_reward, 1f64.exp() - sqrt_e());
+}
+
+/// SPEC v1.3: with `require_score_spread` the kNN term waits for the pool's scores to
+/// differ, the paper's rule does not; once they differ (here mid-episode) both shape
+/// alike, and a pool of one trajectory (after a reset) has no spread.
+#[test]
+fn require_score_spread_waits_for_differing_scores() {
+    let plain = dcfg(2, 3, 3, 0, 1);
+    let spread = TaskConfig {
+        require_score_spread: true,
+        ..plain
+    };
+    let mut pool = pool_of(3, &[(&[0; 4], 1.0), (&[1; 4], 1.0)]);
+    let (mut a, mut b) = (Episode::new(ANY_DISCRETE), Episode::new(ANY_DISCRETE));
+    // Equal scores, every x = 1: an exact match pays e − e^½ under the paper's rule.
+    let out = step(&mut a, &plain, &pool, 0);
+    assert_eq!(
+        (out.knn_active, out.knn_reward),
+        (true, 1f64.exp() - sqrt_e())
+    );
+    let out = step(&mut b, &spread, &pool, 0);
+    assert_eq!(
+        (out.knn_active, out.knn_reward, out.reward),
+        (false, 0.0, 0.0)
+    );
+    // A differing score arrives mid-episode: active from the next step on.
+    assert!(add(&mut pool, &[1, 1, 1], 0.5));
+    let (pa, pb) = (
+        step(&mut a, &plain, &pool, 0),
+        step(&mut b, &spread, &pool, 0),
+    );
+    assert!(pb.knn_active);
+    assert_eq!(pa, pb);
+    // Reset, then one trajectory: S_max = S_min again.
+    pool.apply(&pool.plan_reset());
+    assert!(add(&mut pool, &[0; 4], 2.0));
+    assert!(step(&mut a, &plain, &pool, 0).knn_active);
+    assert!(!step(&mut b, &spread, &pool, 0).knn_active);
 }
 
 #[test]

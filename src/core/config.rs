@@ -16,6 +16,8 @@ pub const DEFAULT_GAMMA: f64 = 0.99;
 pub const DEFAULT_MAX_TRAJECTORY_LEN: u32 = 100_000;
 /// Default `gate_potential` (v1.1).
 pub const DEFAULT_GATE_POTENTIAL: bool = false;
+/// Default `require_score_spread` (v1.3): the paper's rule, active whatever the scores.
+pub const DEFAULT_REQUIRE_SCORE_SPREAD: bool = false;
 
 /// The action space of a task.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -83,6 +85,9 @@ macro_rules! task_config_fields {
             // them as their default.
             /// (v1.1) F counts only on steps where the kNN term is active [false].
             gate_potential: bool,
+            /// (v1.3) The kNN term is active only while the pool's scores differ
+            /// (S_max > S_min) [false].
+            require_score_spread: bool,
         }
     };
 }
@@ -323,6 +328,9 @@ impl TaskConfig {
             gamma,
             max_trajectory_len,
             gate_potential: input.gate_potential.unwrap_or(DEFAULT_GATE_POTENTIAL),
+            require_score_spread: input
+                .require_score_spread
+                .unwrap_or(DEFAULT_REQUIRE_SCORE_SPREAD),
         })
     }
 }

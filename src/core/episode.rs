@@ -247,7 +247,9 @@ impl Episode {
         let active = pool.len() >= cfg.min_pool_size as usize
             && t >= cfg.start_step as usize
             && t < pool.l_min()
-            && t < cfg.max_trajectory_len as usize;
+            && t < cfg.max_trajectory_len as usize
+            // (v1.3) A pool whose scores are all equal says nothing about what worked.
+            && (!cfg.require_score_spread || pool.has_score_spread());
         let knn_reward = if active {
             let k = cfg.k as usize;
             let f = if discrete {

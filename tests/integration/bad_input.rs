@@ -1073,6 +1073,7 @@ async fn create_task_is_idempotent_only_for_the_same_resolved_config() {
         gamma: Some(0.99),
         max_trajectory_len: Some(100_000),
         gate_potential: Some(false),
+        require_score_spread: Some(false),
     };
     assert_eq!(
         created.config.unwrap(),

@@ -127,7 +127,14 @@ async fn a_format2_data_dir_restores_what_its_release_restored() {
     for task in std::fs::read_dir(data.join("tasks")).unwrap() {
         std::fs::create_dir_all(task.unwrap().path().join("traj")).unwrap();
     }
-    let (tasks, pools) = decode_state(&std::fs::read(fixture().join("expected.bin")).unwrap());
+    let (mut tasks, pools) = decode_state(&std::fs::read(fixture().join("expected.bin")).unwrap());
+    // The release that wrote the fixture predates SPEC v1.3's require_score_spread: its
+    // task files lack the field, which this build reads as false and reports.
+    for t in &mut tasks {
+        let config = t.config.as_mut().unwrap();
+        assert_eq!(config.require_score_spread, None, "{}", t.task_id);
+        config.require_score_spread = Some(false);
+    }
     assert!(tasks.iter().any(|t| t.task_id == "late"));
     assert!(!tasks.iter().any(|t| t.task_id == "x/y"));
     let arg = data.to_str().unwrap();

@@ -50,6 +50,8 @@ struct Cfg {
     beta: f64,
     gamma: f64,
     max_len: usize,
+    /// `require_score_spread` (SPEC v1.3).
+    spread: bool,
 }
 
 impl Cfg {
@@ -66,6 +68,7 @@ impl Cfg {
             gamma: Some(self.gamma),
             max_trajectory_len: Some(self.max_len as u32),
             gate_potential: Some(false),
+            require_score_spread: Some(self.spread),
         }
     }
 }
@@ -274,7 +277,14 @@ fn ref_step(cfg: &Cfg, pool: &mut RefPool, env: &mut RefEnv, e: &Entry) -> Out {
     env.acts.push(e.act.clone());
     env.rewards.push(e.reward);
     let l_min = pool.trajs.iter().map(|t| t.acts.len()).min().unwrap_or(0);
-    let active = pool.trajs.len() >= cfg.min_pool && t >= cfg.start && t < l_min && t < cfg.max_len;
+    let scores = || pool.trajs.iter().map(|t| t.score);
+    let spread =
+        scores().fold(f64::NEG_INFINITY, f64::max) > scores().fold(f64::INFINITY, f64::min);
+    let active = pool.trajs.len() >= cfg.min_pool
+        && t >= cfg.start
+        && t < l_min
+        && t < cfg.max_len
+        && (!cfg.spread || spread);
     let knn = if active {
         knn_reward(cfg, pool, &env.acts)
     } else {
@@ -565,6 +575,7 @@ async fn task_lifecycle() {
         gamma: Some(0.99),
         max_trajectory_len: Some(100_000),
         gate_potential: Some(false),
+        require_score_spread: Some(false),
     };
     assert_eq!(t.config.as_ref(), Some(&want_config));
     assert_eq!(
@@ -962,6 +973,7 @@ async fn reference_discrete_multi_env_stream() {
         beta: 0.5,
         gamma: 0.9,
         max_len: 6,
+        spread: false,
     };
     reference_scenario(cfg, 3, 150, 7).await;
     // k = capacity, start 0, min_pool_size 1, long trajectories.
@@ -975,6 +987,18 @@ async fn reference_discrete_multi_env_stream() {
         ..cfg
     };
     reference_scenario(cfg, 2, 100, 11).await;
+    // The same with require_score_spread (SPEC v1.3): scores and rewards come from small
+    // sets, so pools of equal scores (a pool of one, first) come and go.
+    reference_scenario(
+        Cfg {
+            spread: true,
+            ..cfg
+        },
+        2,
+        100,
+        13,
+    )
+    .await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -990,6 +1014,7 @@ async fn reference_continuous_multi_env_stream() {
         beta: 0.8,
         gamma: 0.99,
         max_len: 7,
+        spread: false,
     };
     reference_scenario(cfg, 4, 150, 3).await;
 }
@@ -1100,6 +1125,110 @@ async fn potential_term_terminated_vs_truncated() {
     server.shutdown().await;
 }
 
+/// SPEC v1.3 `require_score_spread` through gRPC: on a pool whose scores are all equal the
+/// kNN term of a task with it is inactive (r = 0, and with `gate_potential` F = 0), where
+/// the paper's rule pays the flat e − e^½ ≈ 1.07 (times α); once an episode with another
+/// score is stored it is active, and both tasks shape alike.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn require_score_spread_waits_for_differing_scores() {
+    let server = start_server(None, |_| {}).await;
+    let mut c = connect(server.addr()).await;
+    let config = |spread: Option<bool>| proto::TaskConfig {
+        beta: Some(1.0),
+        gamma: Some(0.5),
+        gate_potential: Some(true),
+        require_score_spread: spread,
+        ..discrete(2, 3, 3, 0, 1)
+    };
+    let paper = create(&mut c, "paper", config(None)).await;
+    assert_eq!(paper.config.unwrap().require_score_spread, Some(false));
+    let flat = create(&mut c, "flat", config(Some(true))).await;
+    assert_eq!(flat.config.unwrap().require_score_spread, Some(true));
+    assert_eq!(
+        get_task(&mut c, "flat")
+            .await
+            .config
+            .unwrap()
+            .require_score_spread,
+        Some(true)
+    );
+    // A different value is a different config, named in the error.
+    let err = c
+        .create_task(proto::CreateTaskRequest {
+            task_id: "flat".into(),
+            config: Some(config(Some(false))),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), Code::AlreadyExists, "{err:?}");
+    assert!(
+        err.message().contains("require_score_spread"),
+        "{}",
+        err.message()
+    );
+    for id in ["paper", "flat"] {
+        add(&mut c, id, dtraj(&[0, 0, 0, 0], 1.0)).await;
+        add(&mut c, id, dtraj(&[1, 1, 1, 1], 1.0)).await;
+    }
+    let (mut p, _) = Stream::open(&mut c, "paper", 1).await.unwrap();
+    let mut c2 = connect(server.addr()).await;
+    let (mut f, _) = Stream::open(&mut c2, "flat", 1).await.unwrap();
+    // F = 0.5 · 4 − 1 = 1 where it counts (an end by truncation keeps V(s')).
+    let step = |a: u32, end: Option<f64>| proto::StepBatch {
+        actions: vec![a],
+        rewards: vec![0.0],
+        truncated: vec![end.is_some()],
+        values: vec![1.0],
+        next_values: vec![4.0],
+        episode_scores: end.map(|s| (0u32, s)).into_iter().collect(),
+        ..Default::default()
+    };
+    let flat_bonus = 1f64.exp() - 0.5f64.exp();
+    assert!((flat_bonus - 1.07).abs() < 0.01);
+    // Equal scores: every x = 1, an exact prefix match with [0, 0, 0, 0], f = 1.
+    // The ending step is shaped before its own episode is stored.
+    for (t, end) in [(0, None), (1, Some(3.0))] {
+        let got = p.step(step(0, end)).await.unwrap();
+        assert_eq!(got.knn_active, vec![true], "t = {t}");
+        assert_eq!(got.knn_rewards, vec![flat_bonus], "t = {t}");
+        assert_eq!(got.potentials, vec![1.0], "t = {t}");
+        assert_eq!(got.rewards, vec![0.8 * flat_bonus + 1.0], "t = {t}");
+        let got = f.step(step(0, end)).await.unwrap();
+        assert_eq!(got.knn_active, vec![false], "t = {t}");
+        assert_eq!(got.knn_rewards, vec![0.0], "t = {t}");
+        assert_eq!(got.potentials, vec![0.0], "gated F, t = {t}");
+        assert_eq!(got.rewards, vec![0.0], "t = {t}");
+    }
+    // [0, 0] scored 3 is stored in both: S_min 1 < S_max 3. The next episode follows
+    // [1, 1, 1, 1], whose x is now 0: f = 0, r = 1 − e^½ < 0 (what the equal scores could
+    // not tell); at t = 2, L_min = 2 ends the kNN term.
+    for id in ["paper", "flat"] {
+        let stats = get_task(&mut c, id).await.stats.unwrap();
+        assert_eq!(
+            (stats.pool_size, stats.worst_score, stats.best_score),
+            (3, 1.0, 3.0)
+        );
+    }
+    for t in 0..3 {
+        let (gp, gf) = (
+            p.step(step(1, None)).await.unwrap(),
+            f.step(step(1, None)).await.unwrap(),
+        );
+        assert_eq!(gp, gf, "t = {t}: both tasks shape alike");
+        let active = t < 2;
+        let r = if active { 1.0 - 0.5f64.exp() } else { 0.0 };
+        assert_eq!(gf.knn_active, vec![active], "t = {t}");
+        assert_eq!(gf.knn_rewards, vec![r], "t = {t}");
+        assert_eq!(
+            gf.potentials,
+            vec![if active { 1.0 } else { 0.0 }],
+            "t = {t}"
+        );
+    }
+    drop((p, f));
+    server.shutdown().await;
+}
+
 // ---------------------------------------------------------------------------------------
 // Several streams on one task
 // ---------------------------------------------------------------------------------------
@@ -1131,6 +1260,7 @@ async fn two_streams_share_one_pool() {
         beta: 0.8,
         gamma: 0.99,
         max_len: 100,
+        spread: false,
     };
     create(&mut c, "shared", cfg.proto()).await;
     let mut pool = RefPool::new(cfg.cap);
@@ -1382,6 +1512,7 @@ async fn concurrent_streams_on_several_tasks() {
         beta: 0.8,
         gamma: 0.99,
         max_len: 8,
+        spread: false,
     };
     let (num_envs, batches) = (4, 60);
     // Two tasks with one stream each (checked against running alone and the reference),

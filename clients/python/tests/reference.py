@@ -31,6 +31,7 @@ class RefConfig:
     gamma: float = 0.99
     max_trajectory_len: int = 100000
     gate_potential: bool = False
+    require_score_spread: bool = False
 
     @classmethod
     def of(cls, config: object) -> RefConfig:
@@ -63,6 +64,10 @@ def knn_reward(
     l_min = min(len(p.actions) for p in pool)
     if not (t >= cfg.start_step and t < l_min and t < cfg.max_trajectory_len):
         return False, 0.0
+    scores = [p.score for p in pool]
+    s_min, s_max = min(scores), max(scores)
+    if cfg.require_score_spread and not s_max > s_min:
+        return False, 0.0  # SPEC v1.3 §3: a pool of equal scores tells nothing
     d = [dis(p, episode, t, cfg) for p in pool]
     zeros = [i for i, x in enumerate(d) if x == 0.0]
     if zeros:
@@ -71,8 +76,6 @@ def knn_reward(
         inv = [1.0 / x for x in d]
         total = sum(inv)
         prob = [x / total for x in inv]
-    scores = [p.score for p in pool]
-    s_min, s_max = min(scores), max(scores)
     if s_max == s_min:
         x = [1.0] * len(pool)
     else:

@@ -20,6 +20,7 @@ DEFAULTS = {
     "gamma": 0.99,
     "max_trajectory_len": 100000,
     "gate_potential": False,
+    "require_score_spread": False,
 }
 
 
@@ -59,6 +60,7 @@ def test_create_task_all_fields(client: tamrm.Client, task_id: str) -> None:
         "gamma": 1.0,
         "max_trajectory_len": 50,
         "gate_potential": True,
+        "require_score_spread": True,
     }
     task = client.create_task(task_id, **kwargs)  # type: ignore[arg-type]
     for name, value in kwargs.items():
@@ -76,6 +78,7 @@ def test_create_task_all_fields(client: tamrm.Client, task_id: str) -> None:
         "gamma",
         "max_trajectory_len",
         "gate_potential",
+        "require_score_spread",
     }
 
 

@@ -17,6 +17,7 @@ fn defaults_follow_the_spec() {
     assert_eq!((c.alpha, c.beta, c.gamma), (0.8, 0.8, 0.99));
     assert_eq!(c.max_trajectory_len, 100_000);
     assert!(!c.gate_potential);
+    assert!(!c.require_score_spread);
     let c = TaskConfig::resolve(&TaskConfigInput {
         pool_capacity: Some(7),
         ..discrete(2)
@@ -40,6 +41,16 @@ fn same_as_and_diff_see_every_field() {
             "gate_potential: existing false, requested true".to_string()
         ]
     );
+    let mut spread = base;
+    spread.require_score_spread = true;
+    assert!(!base.same_as(&spread));
+    assert_eq!(
+        base.diff(&spread, &TaskConfigInput::default()),
+        vec![
+            "require_score_spread: existing false, requested true (not sent: the default)"
+                .to_string()
+        ]
+    );
     // -0.0 and 0.0 are different configs (bit-exact idempotency).
     let mut z = base;
     z.beta = 0.0;
@@ -49,13 +60,33 @@ fn same_as_and_diff_see_every_field() {
     assert!(base.same_as(&TaskConfig::resolve(&base.to_input()).unwrap()));
 }
 
+/// Stored data written before a field existed (v1.1's `gate_potential`, v1.3's
+/// `require_score_spread`) reads it as its default, false; data that has it keeps it.
 #[test]
-fn older_stored_configs_read_gate_potential_as_false() {
+fn older_stored_configs_read_added_fields_as_false() {
     let c = TaskConfig::resolve(&discrete(3)).unwrap();
-    let mut json = serde_json::to_value(c).unwrap();
-    json.as_object_mut().unwrap().remove("gate_potential");
-    let back: TaskConfig = serde_json::from_value(json).unwrap();
-    assert_eq!(back, c);
+    for added in [
+        &["gate_potential"][..],
+        &["require_score_spread"],
+        &["gate_potential", "require_score_spread"],
+    ] {
+        let mut json = serde_json::to_value(c).unwrap();
+        for name in added {
+            assert!(
+                json.as_object_mut().unwrap().remove(*name).is_some(),
+                "{name}"
+            );
+        }
+        let back: TaskConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(back, c, "{added:?}");
+    }
+    let set = TaskConfig {
+        gate_potential: true,
+        require_score_spread: true,
+        ..c
+    };
+    let back: TaskConfig = serde_json::from_value(serde_json::to_value(set).unwrap()).unwrap();
+    assert_eq!(back, set);
 }
 
 #[test]

@@ -13,11 +13,13 @@ fn every_task_config_field_maps_both_ways() {
         gamma: Some(0.5),
         max_trajectory_len: Some(77),
         gate_potential: Some(true),
+        require_score_spread: Some(true),
         ..Default::default()
     })
     .unwrap();
     let p = config_proto(&c);
     assert_eq!(TaskConfig::resolve(&config_input(Some(&p))).unwrap(), c);
     assert_eq!(p.gate_potential, Some(true));
+    assert_eq!(p.require_score_spread, Some(true));
     assert_eq!(config_input(None), TaskConfigInput::default());
 }

@@ -334,12 +334,15 @@ class TaskCalls:
         The keywords are exactly the ``TaskConfig`` fields (:data:`tamrm.CONFIG_FIELDS`,
         typed by :class:`tamrm.TaskOptions`; SPEC §1.1): ``num_actions``, ``action_dim``,
         ``pool_capacity``, ``k``, ``start_step``, ``min_pool_size``, ``alpha``, ``beta``,
-        ``gamma``, ``max_trajectory_len``, ``gate_potential``.
+        ``gamma``, ``max_trajectory_len``, ``gate_potential``, ``require_score_spread``.
 
         Exactly one of ``num_actions`` (discrete actions ``0..n-1``) and ``action_dim``
         (continuous action vectors) must be given. Creating an existing task with the same
         resolved configuration returns it unchanged. ``gate_potential=True`` makes the
         potential term count only on steps where the kNN term is active (SPEC v1.1 §4).
+        ``require_score_spread=True`` makes the kNN term active only while the pool's
+        scores differ (SPEC v1.3 §3): before the first better episode, a pool of equal
+        scores would pay a flat bonus of about ``1.07 * alpha`` per step.
 
         Returns:
             The task with its resolved configuration.

@@ -47,6 +47,7 @@ class TaskOptions(TypedDict, total=False):
     gamma: float | None
     max_trajectory_len: int | None
     gate_potential: bool | None
+    require_score_spread: bool | None
 
 
 #: The ``TaskConfig`` fields, in proto order; ``Client.create_task`` takes them as keywords.
@@ -90,6 +91,9 @@ class TaskConfig:
         max_trajectory_len: Most actions recorded per episode.
         gate_potential: Whether the potential term F counts only on steps where the kNN
             term is active (SPEC v1.1 §4; ``False`` from servers that predate it).
+        require_score_spread: Whether the kNN term is active only while the pool's scores
+            differ, S_max > S_min (SPEC v1.3 §3): a pool of equal scores then pays no flat
+            bonus per step (``False`` from servers that predate it).
     """
 
     num_actions: int
@@ -103,6 +107,7 @@ class TaskConfig:
     gamma: float
     max_trajectory_len: int
     gate_potential: bool = False
+    require_score_spread: bool = False
 
     @property
     def discrete(self) -> bool:

@@ -60,6 +60,7 @@ class TaskConfig(_message.Message):
     GAMMA_FIELD_NUMBER: _builtins.int
     MAX_TRAJECTORY_LEN_FIELD_NUMBER: _builtins.int
     GATE_POTENTIAL_FIELD_NUMBER: _builtins.int
+    REQUIRE_SCORE_SPREAD_FIELD_NUMBER: _builtins.int
     num_actions: _builtins.int
     """Discrete action space size n >= 1; actions are integers 0..n-1, encoded one-hot, so
     the per-step distance between two actions is 0 (equal) or 2 (different).
@@ -95,6 +96,13 @@ class TaskConfig(_message.Message):
     active (`knn_active`), as in the paper's authors' code; elsewhere F = 0 whatever values
     were sent. Default false.
     """
+    require_score_spread: _builtins.bool
+    """(v1.3) When true, the kNN term is active only while the pool's scores differ
+    (S_max > S_min), besides the other conditions of `knn_active`: a pool whose scores are
+    all equal gives every trajectory x = 1, so r(t) would be a flat bonus per step whatever
+    the actions. Where it is not active r(t) = 0 (and, with gate_potential, F = 0).
+    Default false: the paper's rule, as before v1.3 (an old client that does not send it).
+    """
     def __init__(
         self,
         *,
@@ -109,10 +117,11 @@ class TaskConfig(_message.Message):
         gamma: _builtins.float | None = ...,
         max_trajectory_len: _builtins.int | None = ...,
         gate_potential: _builtins.bool | None = ...,
+        require_score_spread: _builtins.bool | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_require_score_spread", b"_require_score_spread", "_start_step", b"_start_step", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "pool_capacity", b"pool_capacity", "require_score_spread", b"require_score_spread", "start_step", b"start_step"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_start_step", b"_start_step", "action_dim", b"action_dim", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "num_actions", b"num_actions", "pool_capacity", b"pool_capacity", "start_step", b"start_step"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_gamma", b"_gamma", "_gate_potential", b"_gate_potential", "_k", b"_k", "_max_trajectory_len", b"_max_trajectory_len", "_min_pool_size", b"_min_pool_size", "_pool_capacity", b"_pool_capacity", "_require_score_spread", b"_require_score_spread", "_start_step", b"_start_step", "action_dim", b"action_dim", "alpha", b"alpha", "beta", b"beta", "gamma", b"gamma", "gate_potential", b"gate_potential", "k", b"k", "max_trajectory_len", b"max_trajectory_len", "min_pool_size", b"min_pool_size", "num_actions", b"num_actions", "pool_capacity", b"pool_capacity", "require_score_spread", b"require_score_spread", "start_step", b"start_step"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015
@@ -130,6 +139,8 @@ class TaskConfig(_message.Message):
     _WhichOneofArgType__min_pool_size: _TypeAlias = _typing.Literal["_min_pool_size", b"_min_pool_size"]  # noqa: Y015
     _WhichOneofReturnType__pool_capacity: _TypeAlias = _typing.Literal["pool_capacity"]  # noqa: Y015
     _WhichOneofArgType__pool_capacity: _TypeAlias = _typing.Literal["_pool_capacity", b"_pool_capacity"]  # noqa: Y015
+    _WhichOneofReturnType__require_score_spread: _TypeAlias = _typing.Literal["require_score_spread"]  # noqa: Y015
+    _WhichOneofArgType__require_score_spread: _TypeAlias = _typing.Literal["_require_score_spread", b"_require_score_spread"]  # noqa: Y015
     _WhichOneofReturnType__start_step: _TypeAlias = _typing.Literal["start_step"]  # noqa: Y015
     _WhichOneofArgType__start_step: _TypeAlias = _typing.Literal["_start_step", b"_start_step"]  # noqa: Y015
     @_typing.overload
@@ -148,6 +159,8 @@ class TaskConfig(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__min_pool_size) -> _WhichOneofReturnType__min_pool_size | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__pool_capacity) -> _WhichOneofReturnType__pool_capacity | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__require_score_spread) -> _WhichOneofReturnType__require_score_spread | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__start_step) -> _WhichOneofReturnType__start_step | None: ...
 
