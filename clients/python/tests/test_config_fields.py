@@ -32,8 +32,9 @@ DOCS = Path(__file__).resolve().parents[3] / "docs" / "python.md"
 
 def test_proto_has_the_fields_we_know_of() -> None:
     # The comparison below is not vacuous.
-    assert len(PROTO_FIELDS) >= 11
+    assert len(PROTO_FIELDS) >= 12
     assert "gate_potential" in PROTO_FIELDS
+    assert "require_score_spread" in PROTO_FIELDS
 
 
 def test_config_fields_constant() -> None:
@@ -84,6 +85,36 @@ def test_every_field_is_sent_and_read_back() -> None:
         assert getattr(msg, name) == value, name
     config = tamrm.TaskConfig._from_pb(msg)
     assert dataclasses.asdict(config) == values
+
+
+BOOL_FIELDS = [f.name for f in shaping_pb2.TaskConfig.DESCRIPTOR.fields if f.type == f.TYPE_BOOL]
+
+
+def test_the_bool_fields_are_the_ones_added_since_the_first_release() -> None:
+    assert BOOL_FIELDS == ["gate_potential", "require_score_spread"]
+
+
+@pytest.mark.parametrize("name", BOOL_FIELDS)
+def test_bool_fields_round_trip(client: tamrm.Client, task_id: str, name: str) -> None:
+    """A switch added after the first release (SPEC v1.1, v1.3): False unless sent, kept,
+    part of the resolved config (idempotent create, a different value conflicts)."""
+    plain = client.create_task(task_id + "-plain", num_actions=2)
+    assert getattr(plain.config, name) is False
+    on = client.create_task(task_id, num_actions=2, **{name: True})
+    assert getattr(on.config, name) is True
+    assert getattr(client.get_task(task_id).config, name) is True
+    assert client.create_task(task_id, num_actions=2, **{name: True}) == on
+    with pytest.raises(tamrm.AlreadyExists, match=name):
+        client.create_task(task_id, num_actions=2, **{name: False})
+    # Explicit False is the default.
+    again = client.create_task(task_id + "-plain", num_actions=2, **{name: False})
+    assert again == plain
+
+
+@pytest.mark.parametrize("name", BOOL_FIELDS)
+def test_bool_fields_are_type_checked(client: tamrm.Client, task_id: str, name: str) -> None:
+    with pytest.raises(TypeError, match=name):
+        client.create_task(task_id, num_actions=2, **{name: 1})  # type: ignore[arg-type]
 
 
 def test_reference_config_has_every_field() -> None:

@@ -36,12 +36,18 @@ def test_get_pool_op_asks_for_the_action_dim() -> None:
 
 
 def test_create_task_op_builds_the_request() -> None:
-    op = ops.create_task("t", {"num_actions": 3, "gate_potential": True, "k": None})
+    op = ops.create_task(
+        "t",
+        {"num_actions": 3, "gate_potential": True, "require_score_spread": False, "k": None},
+    )
     rpc = next(op)
     assert rpc.method == "CreateTask"
     assert rpc.request.task_id == "t"
     assert rpc.request.config.num_actions == 3
     assert rpc.request.config.gate_potential is True
+    # An explicit False is sent (set, not left to the default).
+    assert rpc.request.config.HasField("require_score_spread")
+    assert rpc.request.config.require_score_spread is False
     assert not rpc.request.config.HasField("k")
 
 

@@ -81,6 +81,7 @@ def scenarios(draw: Callable[..., Any]) -> Scenario:
         "gamma": _optional(draw, st.floats(0, 1)),
         "max_trajectory_len": _optional(draw, st.integers(1, 14)),
         "gate_potential": _optional(draw, st.booleans()),
+        "require_score_spread": _optional(draw, st.booleans()),
     }
     if discrete:
         config["num_actions"] = draw(st.integers(1, 4))

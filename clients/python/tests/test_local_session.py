@@ -239,6 +239,56 @@ def test_the_twin_runs_reach_active_knn_replacements_and_catching_up(
     assert seen["rejected"] >= 1, seen
 
 
+def test_local_sessions_wait_for_a_score_spread_as_remote_ones(
+    remote_client: tamrm.Client,
+) -> None:
+    """With ``require_score_spread`` (SPEC v1.3) a local session's copy decides where the
+    kNN term is active as the server does: not on a pool of equal scores (a change made
+    elsewhere that keeps them equal included), then from the episode end that stores
+    another score on."""
+    config: dict[str, Any] = {
+        "num_actions": 2,
+        "pool_capacity": 4,
+        "k": 4,
+        "start_step": 0,
+        "min_pool_size": 1,
+        "gate_potential": True,
+        "require_score_spread": True,
+    }
+    ids = _twin_tasks(remote_client, config)
+    for t in ids:
+        remote_client.add_trajectory(t, [0, 0, 0, 0], 1.0)
+    sc = Scenario(config, num_envs=1, mode="values", demos=0, batches=0, seed=0, end_prob=0.0)
+    pair = _open_pair(remote_client, ids, sc)
+    assert pair.local.config.require_score_spread is True
+    active: list[bool] = []
+
+    def step_both(action: int, **kwargs: Any) -> tamrm.StepResult:
+        got, want = (
+            s.step([action], [0.5], values=[1.0], next_values=[4.0], env_ids=[0], **kwargs)
+            for s in pair.both
+        )
+        assert_results_identical(got, want)
+        active.append(bool(got.knn_active[0]))
+        return got
+
+    try:
+        step_both(0)
+        # Another equal score, added while the sessions are open: still no spread.
+        latest = [remote_client.add_trajectory(t, [1, 1, 1], 1.0) for t in ids]
+        assert latest[0] == latest[1]
+        pair.catch_up(latest[0].pool_version)
+        step_both(0)
+        # This episode ends scored 3: stored by both, it is the spread.
+        step_both(0, truncated=[True], episode_scores={0: 3.0})
+        for _ in range(4):
+            step_both(1)
+    finally:
+        pair.close()
+    assert active == [False, False, False, True, True, True, False]
+    assert_pools_equal(*(remote_client.get_pool(t) for t in ids))
+
+
 # -- many learners on one task --------------------------------------------------------------
 
 
