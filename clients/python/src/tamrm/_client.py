@@ -14,7 +14,7 @@ import numpy.typing as npt
 from google.protobuf import message_factory
 from google.protobuf.message import Message
 
-from tamrm import _native
+from tamrm import _bridge
 from tamrm import _ops as ops
 from tamrm._closing import Closing
 from tamrm._errors import from_native
@@ -218,7 +218,7 @@ def _auth_metadata(
 
 
 #: The longest ``busy_poll_us`` a client takes (one second), the native extension's bound.
-MAX_BUSY_POLL_US: int = _native.MAX_BUSY_POLL_US
+MAX_BUSY_POLL_US: int = _bridge.MAX_BUSY_POLL_US
 
 
 def _busy_poll_us(value: object) -> int:
@@ -255,7 +255,7 @@ def _read_pem(name: str, value: Pem | None) -> bytes | None:
     )
 
 
-def _channel_options(connection: ConnectionOptions) -> _native.ChannelOptions:
+def _channel_options(connection: ConnectionOptions) -> _bridge.ChannelOptions:
     """The native channel's options for ``connection``, checked (``ValueError``)."""
     tls = connection.get("tls")
     pems = {
@@ -266,7 +266,7 @@ def _channel_options(connection: ConnectionOptions) -> _native.ChannelOptions:
     if tls is False and any(v is not None for v in pems.values()):
         raise ValueError("tls=False contradicts root_certificates/certificate_chain/private_key")
     keepalive = connection.get("keepalive_secs", DEFAULT_KEEPALIVE_SECS)
-    return _native.ChannelOptions(
+    return _bridge.ChannelOptions(
         metadata=_auth_metadata(connection.get("metadata"), connection.get("api_key")),
         tls=bool(tls),
         root_certificates=pems["root_certificates"],
@@ -317,7 +317,7 @@ class TaskCalls:
     def _call(self, timeout: Timeout, rpc: ops.Rpc) -> Any:
         try:
             answer = self._invoke(rpc.method, rpc.request.SerializeToString(), timeout)
-        except _native.StatusError as exc:
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
         return _RESPONSES[rpc.method].FromString(answer)
 
@@ -550,10 +550,10 @@ class Client(TaskCalls, Closing):
             "busy_poll_us": busy_poll_us,
         }
         self._connection = connection
-        self._transport: _native.Channel
+        self._transport: _bridge.Channel
         try:
-            self._transport = _native.Channel(list(self.targets), _channel_options(connection))
-        except _native.StatusError as exc:
+            self._transport = _bridge.Channel(list(self.targets), _channel_options(connection))
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
 
     @property
@@ -585,7 +585,7 @@ class Client(TaskCalls, Closing):
         """
         try:
             self._transport.wait_ready(timeout)
-        except _native.StatusError as exc:
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
 
     def close(self) -> None:

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from tamrm import _native
+from tamrm import _bridge
 from tamrm._client import TaskCalls, Timeout
 from tamrm._closing import Closing
 from tamrm._errors import from_native
@@ -48,10 +48,10 @@ class Engine(TaskCalls, Closing):
 
     def __init__(self, data_dir: str | os.PathLike[str] | None = None) -> None:
         self.data_dir = None if data_dir is None else Path(data_dir)
-        self._transport: _native.Engine
+        self._transport: _bridge.Engine
         try:
-            self._transport = _native.Engine(None if data_dir is None else os.fspath(data_dir))
-        except _native.StatusError as exc:
+            self._transport = _bridge.Engine(None if data_dir is None else os.fspath(data_dir))
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
 
     def _invoke(self, method: str, request: bytes, timeout: Timeout) -> bytes:

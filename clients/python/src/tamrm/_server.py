@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tamrm import _native
+from tamrm import _bridge
 
 if TYPE_CHECKING:
     from tamrm._client import ConnectionOptions
@@ -79,8 +79,8 @@ def health_check(
 
     try:
         options = _channel_options(connection or {})
-        return _native.Channel([target], options).health(service, timeout)
-    except (ValueError, TypeError, _native.StatusError):
+        return _bridge.Channel([target], options).health(service, timeout)
+    except (ValueError, TypeError, _bridge.StatusError):
         return False
 
 

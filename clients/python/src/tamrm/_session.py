@@ -18,7 +18,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from tamrm import _native
+from tamrm import _bridge
 from tamrm._batch import (
     abandon_ids,
     checked_actions,
@@ -45,8 +45,8 @@ _REALS = (_F64, _F32)
 class Transport(Protocol):
     """What a session opens its stream on: ``tamrm._native.Channel`` or ``Engine``."""
 
-    def open(self, task_id: str, num_envs: int, client_id: str) -> _native.NativeStream:
-        """Open a stream (raises ``_native.StatusError``)."""
+    def open(self, task_id: str, num_envs: int, client_id: str) -> _bridge.NativeStream:
+        """Open a stream (raises ``_bridge.StatusError``)."""
         ...
 
 
@@ -114,7 +114,7 @@ class Session(Closing):
         if num_envs > 2**32 - 1:
             raise ValueError(f"num_envs must be < 2**32, got {num_envs}")
         transport: Transport = client._transport
-        follow: Callable[[str, int, str], _native.NativeStream] | None = None
+        follow: Callable[[str, int, str], _bridge.NativeStream] | None = None
         if local:
             follow = getattr(transport, "follow", None)
             if follow is None:
@@ -130,7 +130,7 @@ class Session(Closing):
         opener = transport.open if follow is None else follow
         try:
             self._native = opener(task_id, self.num_envs, uuid.uuid4().hex)
-        except _native.StatusError as exc:
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
         self.task = Task._from_pb(pb.Task.FromString(self._native.opened))
         self._config: TaskConfig = self.task.config
@@ -310,13 +310,13 @@ class Session(Closing):
         """A native step call, its failures turned into this session's errors."""
         try:
             return method(*args)
-        except _native.StatusError as exc:
+        except _bridge.StatusError as exc:
             raise self._failed(exc) from None
         except KeyboardInterrupt:
             self._interrupted()
             raise
 
-    def _failed(self, exc: _native.StatusError) -> TamrmError:
+    def _failed(self, exc: _bridge.StatusError) -> TamrmError:
         """The error to raise for a failed native step call (kept if it closed the session)."""
         err = from_native(exc)
         if self._native.closed:
@@ -362,7 +362,7 @@ class Session(Closing):
         self._native.close()
         try:
             self._native.reopen()
-        except _native.StatusError as exc:
+        except _bridge.StatusError as exc:
             raise from_native(exc) from None
         self._error = None
 

@@ -66,7 +66,7 @@ except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the in
         name=_missing.name,
     ) from None
 
-from tamrm import _native
+from tamrm import _bridge
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
 from tamrm._wrapping import check_session, close_session
@@ -95,7 +95,7 @@ class _MlpCritic:
     ) -> None:
         self._params = params
         self._ptrs = [t.data_ptr() for t in params]
-        self._mlp = _native.Mlp(layers)
+        self._mlp = _bridge.Mlp(layers)
 
     @classmethod
     def of(cls, policy: Any) -> _MlpCritic | None:
@@ -437,7 +437,7 @@ class ShapedVecEnv(VecEnvWrapper):
         config = session.config
         # The fast path: the whole step in one native call on this session
         # (tamrm._native.VecStep, which declines the steps it does not handle).
-        self._vec_step = _native.VecStep(
+        self._vec_step = _bridge.VecStep(
             session._native,
             ModelValueFn,
             0 if config.discrete else config.action_dim,
@@ -590,7 +590,7 @@ class ShapedVecEnv(VecEnvWrapper):
             session = self.session
             try:
                 shaped = self._vec_step.step(self, self._actions, raw_obs, rewards, dones, infos)
-            except _native.StatusError as exc:
+            except _bridge.StatusError as exc:
                 raise session._failed(exc) from None
             except KeyboardInterrupt:
                 session._interrupted()
@@ -626,7 +626,7 @@ class ShapedVecEnv(VecEnvWrapper):
         # The episode sums, `_env_steps`, the info keys and `shaped_episode`: the same
         # native code as the fast path's.
         cfg = self.session.config
-        _native.record_step(self, infos, dones, rewards, result, cfg.alpha, cfg.beta)
+        _bridge.record_step(self, infos, dones, rewards, result, cfg.alpha, cfg.beta)
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
 
