@@ -24,7 +24,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from tamrm._client import DEFAULT_ADDRESS, DEFAULT_TIMEOUT, Client, ConnectionOptions
+from tamrm._address import DEFAULT_ADDRESS
+from tamrm._calls import DEFAULT_TIMEOUT
+from tamrm._client import Client
+from tamrm._connection import ConnectionOptions
 from tamrm._engine import Engine
 from tamrm._errors import (
     AlreadyExists,

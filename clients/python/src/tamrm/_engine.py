@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from tamrm import _bridge
-from tamrm._client import TaskCalls, Timeout
+from tamrm._calls import TaskCalls, Timeout
 from tamrm._closing import Closing
 from tamrm._errors import from_native
 

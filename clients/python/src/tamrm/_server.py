@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from tamrm import _bridge
 
 if TYPE_CHECKING:
-    from tamrm._client import ConnectionOptions
+    from tamrm._connection import ConnectionOptions
 
 __all__ = ["LocalServer", "ServerStartError", "find_binary", "health_check", "local_server"]
 
@@ -75,10 +75,10 @@ def health_check(
     ``connection`` holds the client's TLS settings for a TLS server (the keywords of
     :class:`tamrm.Client`). Returns ``False`` on any error.
     """
-    from tamrm._client import _channel_options
+    from tamrm._connection import channel_options
 
     try:
-        options = _channel_options(connection or {})
+        options = channel_options(connection or {})
         return _bridge.Channel([target], options).health(service, timeout)
     except (ValueError, TypeError, _bridge.StatusError):
         return False

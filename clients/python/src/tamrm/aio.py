@@ -26,9 +26,11 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from tamrm._client import CLIENT_TIMEOUT, DEFAULT_TIMEOUT, ConnectionOptions, Targets, Timeout
+from tamrm._address import Targets
+from tamrm._calls import CLIENT_TIMEOUT, DEFAULT_TIMEOUT, Timeout
 from tamrm._client import Client as _SyncClient
 from tamrm._closing import AsyncClosing
+from tamrm._connection import ConnectionOptions
 from tamrm._errors import SessionClosed
 from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskConfig, TaskOptions

@@ -58,7 +58,9 @@ from ray.rllib.env.multi_agent_episode import MultiAgentEpisode
 from ray.rllib.utils.spaces.space_utils import batch as batch_structs
 from ray.rllib.utils.spaces.space_utils import clip_action, unsquash_action
 
-from tamrm._client import Client, ConnectionOptions, parse_targets, resolve_api_key
+from tamrm._address import parse_targets
+from tamrm._client import Client
+from tamrm._connection import ConnectionOptions, resolve_api_key
 from tamrm._errors import TamrmError
 from tamrm._session import Session
 from tamrm._types import Task, TaskConfig
