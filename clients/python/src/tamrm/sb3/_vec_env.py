@@ -1,41 +1,13 @@
-"""Stable-Baselines3 integration (install with ``pip install 'tamrm[sb3]'``).
+"""The Stable-Baselines3 ``VecEnv`` wrapper whose rewards are shaped (:class:`ShapedVecEnv`).
 
-:class:`ShapedVecEnv` wraps an SB3 ``VecEnv`` so that the rewards the model learns from
-are the shaped ones; no change to SB3 is needed::
-
-    venv = make_vec_env("CartPole-v1", n_envs=8)
-    with client.session("cartpole", venv.num_envs) as session:
-        env = tamrm.sb3.ShapedVecEnv(venv, session)
-        model = A2C("MlpPolicy", env)
-        env.bind_model(model)  # optional: F from the model's own value estimates
-        model.learn(100_000)
-
-SB3 resets a sub-environment inside the step that ended its episode: the returned
-observation is already the reset one and the real last observation is in
-``infos[i]["terminal_observation"]``; ``infos[i]["TimeLimit.truncated"]`` tells a time
-limit from a real termination. Both are used here: a truncated step is sent as
-``truncated`` with V(s') of the real last observation, a terminated one as
-``terminated`` (the server takes V(s') = 0).
-
-Each env's ``info`` gets ``original_reward``, ``knn_reward``, ``potential``,
-``shaping_step``, ``knn_active`` and ``pool_version``. Episode statistics recorded by
-SB3's ``Monitor`` (below the ``VecEnv``, as ``make_vec_env`` puts it) or by a
-``VecMonitor`` below this wrapper stay in terms of the original reward (``info["episode"]``,
-SB3's ``ep_rew_mean``); the shaped return and its parts are beside them, in
-``info["shaped_episode"]`` (``r``: the sum of R_meta, ``knn``: of alpha * r(t),
-``potential``: of beta * F, ``l``: the length). A ``VecMonitor`` above this wrapper is
-refused (it would record the shaped returns).
-
-The bound model's critic is evaluated once per observation (see :class:`ModelValueFn`),
-with the same values as evaluating V(s) and V(s') on every step. :class:`ShapingLogger`
-records the shaped parts in the model's logger::
-
-    model.learn(100_000, callback=tamrm.sb3.ShapingLogger())
+Each vector step is one call of the native fast path (``VecStep``), or, for the steps it
+declines, a session step built here: SB3's ``dones`` split into terminated and truncated,
+V(s) and V(s') of the bound value function (evaluated once per observation), the episode
+scores. :class:`ShapingStats` sums what was shaped, for :class:`tamrm.sb3.ShapingLogger`.
 """
 
 from __future__ import annotations
 
-import itertools
 import sys
 import warnings
 from dataclasses import dataclass
@@ -44,225 +16,23 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
-try:
-    from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.vec_env import (
-        VecCheckNan,
-        VecEnv,
-        VecEnvWrapper,
-        VecMonitor,
-        VecNormalize,
-        VecVideoRecorder,
-    )
-    from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
-except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the install
-    if (_missing.name or "").split(".")[0] not in ("stable_baselines3", "torch"):
-        raise
-    raise ImportError(
-        f"tamrm.sb3 needs Stable-Baselines3 ({_missing.name} is not installed): "
-        "pip install 'tamrm[sb3]' (it brings PyTorch; see docs/python.md for CPU-only "
-        "wheels)",
-        name=_missing.name,
-    ) from None
+from stable_baselines3.common.vec_env import (
+    VecCheckNan,
+    VecEnv,
+    VecEnvWrapper,
+    VecMonitor,
+    VecNormalize,
+    VecVideoRecorder,
+)
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs
 
 from tamrm import _bridge
 from tamrm._session import Session
 from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
 from tamrm._wrapping import check_session, close_session
+from tamrm.sb3._critic import ModelValueFn, model_value_fn
 
-__all__ = ["ModelValueFn", "ShapedVecEnv", "ShapingLogger", "ShapingStats", "model_value_fn"]
-
-
-class _MlpCritic:
-    """An SB3 critic that is a plain MLP, evaluated natively on views of its parameters.
-
-    Built by :meth:`of` for the usual SB3 policies (``MlpPolicy`` of A2C, PPO, DQN): a
-    ``Box`` (non-image) observation space, a ``FlattenExtractor``, and a stack of
-    ``nn.Linear`` layers with ``Tanh``/``ReLU`` activations, float32 on the CPU. It runs
-    in the native extension (``tamrm._native.Mlp``) on numpy views of the torch
-    parameters (``Tensor.numpy()`` shares the memory), so every in-place update
-    (optimizer steps, ``load_state_dict``) is seen without a copy; a parameter whose
-    storage was replaced (``.data = ...``) makes :meth:`current` false and the critic is
-    built again. The values equal torch's up to float32 rounding (the same float32
-    weights, another summation order, tanh within 8 ulps): about 1e-7 relative.
-    """
-
-    def __init__(
-        self,
-        params: tuple[Any, ...],
-        layers: list[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], str]],
-    ) -> None:
-        self._params = params
-        self._ptrs = [t.data_ptr() for t in params]
-        self._mlp = _bridge.Mlp(layers)
-
-    @classmethod
-    def of(cls, policy: Any) -> _MlpCritic | None:
-        """The native critic of ``policy``, or ``None`` when it is not a plain MLP critic."""
-        import torch
-        from gymnasium import spaces
-        from stable_baselines3.common.preprocessing import is_image_space
-        from stable_baselines3.common.torch_layers import FlattenExtractor
-
-        space = getattr(policy, "observation_space", None)
-        if not isinstance(space, spaces.Box) or is_image_space(space):
-            return None
-        if hasattr(policy, "q_net"):
-            extractor = getattr(policy.q_net, "features_extractor", None)
-            modules = [policy.q_net.q_net]
-        else:
-            extractor = getattr(policy, "vf_features_extractor", None)
-            mlp = getattr(policy, "mlp_extractor", None)
-            if mlp is None:
-                return None
-            modules = [getattr(mlp, "value_net", None), getattr(policy, "value_net", None)]
-        if type(extractor) is not FlattenExtractor:
-            return None
-        flat: list[Any] = []
-        for module in modules:
-            if type(module) is torch.nn.Sequential:
-                flat.extend(module)
-            elif module is not None:
-                flat.append(module)
-            else:
-                return None
-        layers: list[tuple[Any, Any, str]] = []
-        params: list[Any] = []
-        for module in flat:
-            kind = type(module)
-            if kind is torch.nn.Linear and module.bias is not None:
-                weight, bias = module.weight, module.bias
-                if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in (weight, bias)):
-                    return None
-                params += [weight, bias]
-                layers.append((weight.detach().numpy(), bias.detach().numpy(), ""))
-            elif kind in (torch.nn.Tanh, torch.nn.ReLU) and layers and not layers[-1][2]:
-                w, b, _ = layers[-1]
-                layers[-1] = (w, b, "tanh" if kind is torch.nn.Tanh else "relu")
-            elif kind is not torch.nn.Identity:
-                return None
-        if not layers:
-            return None
-        return cls(tuple(params), layers)
-
-    def current(self) -> bool:
-        """Whether every parameter still has the storage the views were taken of."""
-        return [t.data_ptr() for t in self._params] == self._ptrs
-
-    def __call__(self, obs: ObsBatch) -> npt.NDArray[np.float32]:
-        """The critic's output for a batch: ``(B, out)``, float32."""
-        x = np.asarray(obs, dtype=np.float32)
-        return self._mlp(np.ascontiguousarray(x.reshape(x.shape[0], -1)))
-
-
-class ModelValueFn:
-    """A Stable-Baselines3 model's own value estimates as a ``value_fn`` (:func:`model_value_fn`).
-
-    Calling it evaluates the model's current policy (``model.policy``) on a batch of
-    observations; :meth:`version` tells :class:`ShapedVecEnv` when values it computed
-    earlier may be stale.
-
-    Args:
-        model: The SB3 model (its ``policy`` is read at every call).
-        fast: Evaluate a plain MLP critic natively on views of its parameters (see
-            :func:`model_value_fn`) instead of through torch. Other policies always go
-            through torch.
-    """
-
-    def __init__(self, model: Any, *, fast: bool = True) -> None:
-        import torch
-
-        policy = model.policy
-        if not hasattr(policy, "q_net") and not hasattr(policy, "predict_values"):
-            raise TypeError(
-                f"{type(model).__name__}: its policy has neither q_net (DQN) nor "
-                "predict_values (A2C/PPO); pass your own value_fn"
-            )
-        self.model = model
-        self.fast = fast
-        self._no_grad = torch.no_grad
-        self._tensors: tuple[Any, tuple[Any, ...], tuple[int, ...]] | None
-        self._tensors = None
-        # (the policy it was built for, its native critic or None, whether it is a Q-net)
-        self._critic: tuple[Any, _MlpCritic | None, bool] | None = None
-
-    def _native_critic(self, policy: Any) -> _MlpCritic | None:
-        return self._critic_of(policy)[0]
-
-    def _critic_of(self, policy: Any) -> tuple[_MlpCritic | None, bool]:
-        """The native critic of ``policy`` (or ``None``) and whether it gives Q-values.
-
-        Both are kept per policy object: ``hasattr`` on a torch module that lacks the
-        attribute raises and catches an exception inside ``nn.Module``, a few µs a step.
-        """
-        cached = self._critic
-        if cached is None or cached[0] is not policy or (cached[1] and not cached[1].current()):
-            cached = self._critic = (policy, _MlpCritic.of(policy), hasattr(policy, "q_net"))
-        return cached[1], cached[2]
-
-    @property
-    def native(self) -> bool:
-        """Whether calls evaluate the current policy's critic natively (not through torch)."""
-        return self.fast and self._native_critic(self.model.policy) is not None
-
-    def __call__(self, obs: ObsBatch) -> npt.NDArray[Any]:
-        """Q(s, ·) ``(B, num_actions)`` with a Q-network, else V(s) ``(B,)``."""
-        policy = self.model.policy
-        critic, q = self._critic_of(policy) if self.fast else (None, hasattr(policy, "q_net"))
-        if critic is not None:
-            out = critic(obs)
-            return out if q else out.reshape(-1)
-        tensor, _ = policy.obs_to_tensor(obs)
-        with self._no_grad():
-            if q:
-                return np.asarray(policy.q_net(tensor).cpu().numpy(), dtype=np.float64)
-            values = policy.predict_values(tensor)
-        return np.asarray(values.cpu().numpy(), dtype=np.float64).reshape(-1)
-
-    def version(self) -> tuple[Any, ...]:
-        """Changes whenever the values may have changed.
-
-        It is made of the policy's identity, its training mode and the ids, in-place
-        version counters and storage pointers of its parameters and buffers: every
-        optimizer step (and ``set_parameters`` / ``load_state_dict``) bumps a counter, and
-        giving a tensor new storage (``p.data = ...``) moves its pointer. Not seen: an
-        in-place change through the ``.data`` alias (``p.data.add_(...)``, whose counter
-        is not ``p``'s) and a submodule replaced inside the same policy object (the list
-        of tensors is taken once per policy object).
-        """
-        policy = self.model.policy
-        cached = self._tensors
-        if cached is None or cached[0] is not policy:
-            # Walking the modules is most of the cost: done once per policy object (its
-            # parameters are updated in place; a new policy object is walked again).
-            tensors = tuple(itertools.chain(policy.parameters(), policy.buffers()))
-            cached = self._tensors = (policy, tensors, tuple(id(t) for t in tensors))
-        _, tensors, ids = cached
-        state = tuple([(t._version, t.data_ptr()) for t in tensors])
-        return (id(policy), policy.training, ids, state)
-
-
-def model_value_fn(model: Any, *, fast: bool = True) -> ModelValueFn:
-    """Return a ``value_fn`` computing a Stable-Baselines3 model's own value estimates.
-
-    - Models with a Q-network (``DQN``: ``model.policy.q_net``) give Q(s, ·); the server
-      takes V(s) = max_a Q(s, a).
-    - Actor-critic models (``A2C``, ``PPO``: ``model.policy.predict_values``) give V(s).
-
-    With ``fast`` (the default), a critic that is a plain MLP (``MlpPolicy`` on a ``Box``
-    observation space: ``FlattenExtractor``, ``Linear`` layers, ``Tanh``/``ReLU``; float32
-    on the CPU) is evaluated in the native extension on views of the model's own
-    parameters, which follow every training step: 10-30x cheaper per call than a torch
-    forward pass, with the same values up to float32 rounding (~1e-7 relative). Any other
-    policy, and ``fast=False``, goes through torch: observations preprocessed exactly as
-    the policy does (``obs_to_tensor``), under ``torch.no_grad()``. The function has a
-    ``version()`` method, so :class:`ShapedVecEnv` evaluates it once per observation.
-
-    Raises:
-        TypeError: The model's policy has neither ``q_net`` nor ``predict_values``.
-    """
-    return ModelValueFn(model, fast=fast)
+__all__ = ["ShapedVecEnv", "ShapingStats"]
 
 
 _MONITOR_ABOVE = (
@@ -629,63 +399,3 @@ class ShapedVecEnv(VecEnvWrapper):
         _bridge.record_step(self, infos, dones, rewards, result, cfg.alpha, cfg.beta)
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
-
-
-class ShapingLogger(BaseCallback):
-    """Record the shaped reward's parts in the model's logger (TensorBoard, CSV, stdout).
-
-    ``model.learn(total, callback=tamrm.sb3.ShapingLogger())``: at the end of every
-    rollout it records, as means per environment step over all steps since the logger
-    last wrote a row, ``tamrm/reward_env`` (R), ``tamrm/knn_term`` (alpha * r(t)),
-    ``tamrm/potential_term`` (beta * F) and ``tamrm/knn_active_frac``, and the task's
-    ``tamrm/pool_size`` (asked from the server with ``get_task`` only when the pool
-    version changed since the last time).
-
-    Args:
-        env: The :class:`ShapedVecEnv`; by default the one in the model's env (found
-            through its ``venv`` chain).
-        prefix: The keys' prefix.
-    """
-
-    def __init__(self, env: ShapedVecEnv | None = None, *, prefix: str = "tamrm/") -> None:
-        super().__init__()
-        self.env = env
-        self.prefix = prefix
-        self._totals = ShapingStats()
-        self._pool = (-1, 0)  # (pool version, pool size) of the last get_task
-
-    def _init_callback(self) -> None:
-        env: Any = self.training_env
-        while self.env is None and isinstance(env, VecEnvWrapper):
-            if isinstance(env, ShapedVecEnv):
-                self.env = env
-            env = env.venv
-        if self.env is None:
-            raise ValueError(
-                "ShapingLogger: the model's env contains no ShapedVecEnv; pass it: "
-                "ShapingLogger(env)"
-            )
-        self.env.take_stats()  # steps shaped before learn() are not this run's
-        self._totals = ShapingStats()
-
-    def _on_step(self) -> bool:
-        return True
-
-    def _on_rollout_end(self) -> None:
-        assert self.env is not None
-        key = self.prefix + "reward_env"
-        if key not in self.logger.name_to_value:  # the logger wrote a row (or none yet)
-            self._totals = ShapingStats()
-        totals = self._totals = self._totals + self.env.take_stats()
-        if totals.env_steps == 0:
-            return
-        steps = totals.env_steps
-        self.logger.record(key, totals.reward_env / steps)
-        self.logger.record(self.prefix + "knn_term", totals.knn_term / steps)
-        self.logger.record(self.prefix + "potential_term", totals.potential_term / steps)
-        self.logger.record(self.prefix + "knn_active_frac", totals.knn_active / steps)
-        if totals.pool_version != self._pool[0]:
-            session = self.env.session
-            stats = session._client.get_task(session.task_id).stats
-            self._pool = (totals.pool_version, stats.pool_size)
-        self.logger.record(self.prefix + "pool_size", self._pool[1])
