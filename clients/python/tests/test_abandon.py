@@ -11,6 +11,7 @@ import grpc
 import gymnasium as gym
 import numpy as np
 import pytest
+from grpc_stubs import shaping_pb2_grpc as pb_grpc
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -20,7 +21,6 @@ import tamrm
 import tamrm.aio
 import tamrm.gym
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
-from tamrm._proto.tamrm.v1 import shaping_pb2_grpc as pb_grpc
 
 
 def abandon_unsupported(err: tamrm.TamrmError) -> bool:

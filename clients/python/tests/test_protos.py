@@ -1,4 +1,5 @@
-"""The checked-in stubs are exactly what the pinned generators make from proto/."""
+"""The checked-in stubs are exactly what the pinned generators make from proto/: the
+messages in the package, grpcio's service stubs beside the tests (their only user)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 
 CLIENT = Path(__file__).resolve().parents[1]
 CHECKED_IN = CLIENT / "src" / "tamrm" / "_proto"
+CHECKED_IN_GRPC = CLIENT / "tests" / "grpc_stubs"
 
 
 def _load_gen_protos():  # type: ignore[no-untyped-def]
@@ -26,14 +28,16 @@ def _load_gen_protos():  # type: ignore[no-untyped-def]
 def test_stubs_are_up_to_date(tmp_path: Path) -> None:
     pytest.importorskip("grpc_tools")
     gen = _load_gen_protos()
-    fresh = tmp_path / "_proto"
-    gen.generate(fresh)
-    stale = gen.stale_files(fresh, CHECKED_IN)
+    fresh, fresh_grpc = tmp_path / "_proto", tmp_path / "grpc_stubs"
+    gen.generate(fresh, fresh_grpc)
+    stale = gen.stale_files(fresh, CHECKED_IN) + gen.stale_files(fresh_grpc, CHECKED_IN_GRPC)
     assert stale == [], f"stale stubs, run scripts/gen_protos.py: {stale}"
     # The comparison itself detects a change.
     target = fresh / "tamrm" / "v1" / "shaping_pb2.py"
     target.write_bytes(target.read_bytes() + b"\n")
     assert gen.stale_files(fresh, CHECKED_IN) == ["tamrm/v1/shaping_pb2.py"]
+    (fresh_grpc / "shaping_pb2_grpc.pyi").unlink()
+    assert gen.stale_files(fresh_grpc, CHECKED_IN_GRPC) == ["shaping_pb2_grpc.pyi"]
 
 
 def test_check_mode_exit_code() -> None:
@@ -48,8 +52,11 @@ def test_check_mode_exit_code() -> None:
 
 
 def test_stubs_import_inside_the_package() -> None:
-    from tamrm._proto.tamrm.v1 import shaping_pb2, shaping_pb2_grpc
+    from grpc_stubs import shaping_pb2_grpc
 
+    from tamrm._proto.tamrm.v1 import shaping_pb2
+
+    assert shaping_pb2_grpc.tamrm_dot_v1_dot_shaping__pb2 is shaping_pb2
     assert shaping_pb2.DESCRIPTOR.name == "tamrm/v1/shaping.proto"
     assert shaping_pb2.DESCRIPTOR.package == "tamrm.v1"
     assert hasattr(shaping_pb2_grpc, "ShapingStub")
@@ -67,6 +74,8 @@ def test_stubs_import_inside_the_package() -> None:
     ]
     # The stubs did not shadow or get shadowed by the client package.
     assert "tamrm.v1" not in sys.modules
+    # The package ships the messages only: grpcio's stubs are the tests'.
+    assert not list(CHECKED_IN.rglob("*_grpc.py*"))
 
 
 def test_the_package_runs_without_grpcio() -> None:

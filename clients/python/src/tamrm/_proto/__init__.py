@@ -1,1 +1,1 @@
-"""Generated gRPC stubs of the tamrm API (scripts/gen_protos.py)."""
+"""Generated protobuf messages of tamrm (scripts/gen_protos.py)."""
