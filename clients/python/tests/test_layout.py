@@ -1,6 +1,7 @@
 """The Python client's layout rules, read off its sources (as ``tests/layers.rs`` does for
 the Rust crates; docs/architecture.md, "The Python client"): one module owns the native
-extension, and the extension's stub describes what it is built with."""
+extension, the extension's stub describes what it is built with, and a long module says
+why it is one module."""
 
 from __future__ import annotations
 
@@ -121,4 +122,46 @@ def test_the_stub_describes_the_built_extension() -> None:
             }
         )
         + "; update the stub, or rebuild the extension (maturin develop)"
+    )
+
+
+#: How many lines a module may have before it must say, at its top, why it is one module
+#: (a line ``# Long file: <why>`` within its first 40 lines), as the Rust sources must
+#: (docs/decisions/a-long-file-says-why.md): past that a module usually holds several
+#: jobs, each of which reads better on its own.
+LONG_FILE = 500
+#: Written by scripts/gen_protos.py from proto/, never by hand.
+GENERATED = PACKAGE / "_proto"
+
+
+def long_file_reason(text: str) -> str | None:
+    """The reason a ``# Long file: <why>`` line in the first 40 lines gives, if any."""
+    for line in text.splitlines()[:40]:
+        stripped = line.strip()
+        if stripped.lower().startswith("# long file:"):
+            return stripped[len("# long file:") :].strip() or None
+    return None
+
+
+def test_the_reason_is_read_off_the_top() -> None:
+    assert long_file_reason('"""Doc."""\n\n# Long file: one table.\nX = 1\n') == "one table."
+    assert long_file_reason("# Long file:\n") is None
+    assert long_file_reason("\n" * 40 + "# Long file: too far down\n") is None
+
+
+def test_a_long_module_says_why_it_is_one_module() -> None:
+    longest = 0
+    problems = []
+    for path in sorted([*PACKAGE.rglob("*.py"), *PACKAGE.rglob("*.pyi")]):
+        if GENERATED in path.parents:
+            continue
+        text = path.read_text(encoding="utf-8")
+        lines = len(text.splitlines())
+        longest = max(longest, lines)
+        if lines > LONG_FILE and long_file_reason(text) is None:
+            problems.append(f"{rel(path)} has {lines} lines")
+    assert longest > 100, f"the longest module has {longest} lines: is the check blind?"
+    assert not problems, (
+        f"more than {LONG_FILE} lines: split the module by job, or say why it is one module "
+        f"in a line `# Long file: <why>` at its top: {problems}"
     )
