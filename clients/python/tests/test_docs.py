@@ -1,10 +1,11 @@
 """The documentation's rules that can be checked (CONTRIBUTING.md, "Where documentation
 goes"): the README and the guides stay short, the guides hold current numbers rather than
-dated run logs (those live in docs/lab/), no issue numbers, and every relative link and
-anchor in the Markdown resolves."""
+dated run logs (those live in docs/lab/), no issue numbers, every relative link and
+anchor in the Markdown resolves, and the Python modules the docs name exist."""
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -177,3 +178,111 @@ def test_every_lab_notebook_is_linked_from_a_guide() -> None:
             linked.add((path.parent / target.partition("#")[0]).resolve())
     orphans = [rel(p) for p in sorted((DOCS / "lab").glob("*.md")) if p.resolve() not in linked]
     assert not orphans, f"lab notebooks no guide links to: {orphans}"
+
+
+SRC = REPO_ROOT / "clients" / "python" / "src"
+#: The places whose Python names must exist: what a reader takes as the code of today.
+#: (docs/lab/ holds dated records, which name the code as it was then.)
+NAMING_DOCS = [
+    REPO_ROOT / "README.md",
+    REPO_ROOT / "CONTRIBUTING.md",
+    REPO_ROOT / "clients" / "python" / "README.md",
+    *sorted(DOCS.glob("*.md")),
+    *sorted((DOCS / "decisions").glob("*.md")),
+]
+#: ``tamrm.<module>[.<name>]``, not inside a path, a file name or another dotted name.
+PY_NAME = re.compile(r"(?<![\w./-])tamrm(?:\.[A-Za-z_]\w*)+")
+#: ``tamrm/<path>.py`` (or ``.pyi``) and ``src/tamrm/<dir>/``, relative to clients/python/src.
+PY_PATH = re.compile(
+    r"(?<![\w./-])(?:clients/python/)?(?:src/)?(tamrm/(?:\w+/)*\w+\.pyi?|tamrm/(?:\w+/)+)(?![\w/])"
+)
+#: ``tamrm.<this>`` that is not Python: the proto's packages (``tamrm.v1.Shaping``), a host
+#: name (``tamrm.example.com``) and files (``tamrm.toml``, ``tamrm.json``, ...).
+NOT_PYTHON = {"v1", "v2", "example", "json", "toml", "key", "crt"}
+
+
+def bound_names(module: Path) -> set[str]:
+    """The names a module binds at its top level (also under ``if``/``try``)."""
+    names: set[str] = set()
+    body = list(ast.parse(module.read_text(encoding="utf-8")).body)
+    while body:
+        node = body.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Assign):
+            names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.add(node.target.id)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.If):
+            body += node.body + node.orelse
+        elif isinstance(node, ast.Try):
+            body += node.body + node.orelse + node.finalbody
+            for handler in node.handlers:
+                body += handler.body
+    return names
+
+
+def missing_python_name(name: str) -> str | None:
+    """Why ``tamrm.a.b...`` names nothing in the sources (``None``: it does).
+
+    Each segment is a package (a directory), a module (``.py``, or the extension's
+    ``.pyi``), or a name its module binds; what follows a bound name (an attribute) is
+    not checked.
+    """
+    directory: Path | None = SRC / "tamrm"
+    module = SRC / "tamrm" / "__init__.py"
+    for segment in name.split(".")[1:]:
+        if directory is not None and (directory / segment).is_dir():
+            directory = directory / segment
+            module = directory / "__init__.py"
+            continue
+        files = [] if directory is None else [directory / (segment + s) for s in (".py", ".pyi")]
+        found = [f for f in files if f.exists()]
+        if found:
+            directory, module = None, found[0]
+            continue
+        if not module.exists() or segment not in bound_names(module):
+            return f"{segment!r} is no module of, nor a name in, {module.relative_to(SRC)}"
+        return None
+    return None
+
+
+def python_names(path: Path) -> list[tuple[int, str]]:
+    text = path.read_text(encoding="utf-8")
+    found = []
+    for m in PY_NAME.finditer(text):
+        if m.group(0).split(".")[1] not in NOT_PYTHON:
+            found.append((text.count("\n", 0, m.start()) + 1, m.group(0)))
+    return found
+
+
+def test_the_name_checks_see_stale_names() -> None:
+    assert missing_python_name("tamrm.sb3.ShapedVecEnv") is None
+    assert missing_python_name("tamrm._native.VecStep") is None
+    assert missing_python_name("tamrm._proto.tamrm.v1") is None
+    assert missing_python_name("tamrm.Client.session") is None
+    assert missing_python_name("tamrm._stream.SessionCore") is not None
+    assert missing_python_name("tamrm.rllib.NoSuchPiece") is not None
+    assert [n for _, n in python_names(DOCS / "python.md")], "no names read: is the check blind?"
+    assert PY_PATH.findall("`clients/python/src/tamrm/_proto/`, tamrm/gym.py") == [
+        "tamrm/_proto/",
+        "tamrm/gym.py",
+    ]
+    assert PY_PATH.findall("tamrm/reward_env, /etc/tamrm/server.crt, tamrm/v1/a.proto") == []
+
+
+@pytest.mark.parametrize("path", NAMING_DOCS, ids=rel)
+def test_the_python_modules_the_docs_name_exist(path: Path) -> None:
+    problems = []
+    for line, name in python_names(path):
+        why = missing_python_name(name)
+        if why is not None:
+            problems.append(f"{rel(path)}:{line}: {name}: {why}")
+    text = path.read_text(encoding="utf-8")
+    for m in PY_PATH.finditer(text):
+        if not (SRC / m.group(1)).exists():
+            line = text.count("\n", 0, m.start()) + 1
+            problems.append(f"{rel(path)}:{line}: {m.group(0)}: no such file in clients/python/src")
+    assert not problems, "\n".join(problems)
