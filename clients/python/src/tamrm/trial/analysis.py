@@ -154,6 +154,8 @@ class Comparison:
     margin: float
     equivalence_p: float
     verdict: str = ""
+    #: The verdict as a sentence, and what it rests on.
+    headline: str = ""
     sentence: str = ""
     seeds_needed: int | None = None
     censored: dict[str, int] = field(default_factory=dict)
@@ -238,17 +240,18 @@ def _verdict(c: Comparison, family_size: int) -> None:
     )
     if n >= 2 and test.p_holm < LEVEL and d.mean != 0:
         c.verdict = "helps" if d.mean > 0 else "hurts"
+        c.headline = f"{c.arm} {c.verdict}."
         c.sentence = (
-            f"{c.arm} {c.verdict}: its AUC differs from plain's by {diffs_interval} over "
-            f"{n} paired seeds, Wilcoxon p = {test.p_holm:.3g} after Holm's correction."
+            f"Its AUC differs from plain's by {diffs_interval} over {n} paired seeds, "
+            f"Wilcoxon p = {test.p_holm:.3g} after Holm's correction."
         )
         return
     if n >= 2 and c.equivalence_p < LEVEL:
         c.verdict = "no difference"
+        c.headline = f"{c.arm} makes no difference large enough to matter."
         c.sentence = (
-            f"{c.arm} makes no difference large enough to matter: the AUC difference "
-            f"{diffs_interval} lies within ±{c.margin:.4g} (equivalence p = "
-            f"{c.equivalence_p:.3g})."
+            f"The AUC difference {diffs_interval} lies within ±{c.margin:.4g} "
+            f"(equivalence p = {c.equivalence_p:.3g})."
         )
         return
     c.verdict = "not enough seeds"
@@ -259,8 +262,9 @@ def _verdict(c: Comparison, family_size: int) -> None:
         c.margin if not math.isnan(c.margin) else None,
         alpha=LEVEL / max(1, family_size),
     )
+    c.headline = f"{c.arm}: not enough seeds to tell."
     if n < 2:
-        c.sentence = f"{c.arm}: not enough seeds to tell ({n} paired seed{'s' * (n != 1)})."
+        c.sentence = f"{n} paired seed{'s' * (n != 1)}."
         return
     more = (
         f" About {c.seeds_needed} paired seeds would resolve it at the observed spread."
@@ -268,9 +272,9 @@ def _verdict(c: Comparison, family_size: int) -> None:
         else ""
     )
     c.sentence = (
-        f"{c.arm}: not enough seeds to tell: the AUC difference {diffs_interval} over {n} "
-        f"paired seeds is neither significant (p = {test.p_holm:.3g} after Holm) nor shown "
-        f"to lie within ±{c.margin:.4g} (equivalence p = {c.equivalence_p:.3g}).{more}"
+        f"The AUC difference {diffs_interval} over {n} paired seeds is neither significant "
+        f"(p = {test.p_holm:.3g} after Holm) nor shown to lie within ±{c.margin:.4g} "
+        f"(equivalence p = {c.equivalence_p:.3g}).{more}"
     )
 
 

@@ -375,5 +375,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     report.write()
     print(f"tamrm-trial: report in {args.out / 'report.md'}", file=sys.stderr)
     for c in report.comparisons if settings.verdict else []:
-        print(f"  {c.sentence}")
+        print(f"  {c.headline} {c.sentence}")
     return 130 if interrupted else 0

@@ -166,7 +166,7 @@ class Report:
             "",
         ]
         for c in self.comparisons:
-            out.append(f"- **{c.verdict}**: {c.sentence}")
+            out.append(f"- **{c.headline}** {c.sentence}")
         if not self.comparisons:
             out.append("- no arm to compare with plain")
         n = min((c.tests["auc"].n for c in self.comparisons), default=0)
@@ -254,13 +254,13 @@ class Report:
             out += ["## Failed runs", ""]
             out += [f"- `{run_name(*run)}`: {err}" for run, err in sorted(self.failures.items())]
             out.append("")
-        walls = [r["wall_time_s"] for r in self.records.values()]
-        if walls:
+        cpu = [r.get("cpu_time_s", r["wall_time_s"]) for r in self.records.values()]
+        if cpu:
             out += [
                 "## Cost",
                 "",
-                f"{len(walls)} runs, {sum(walls) / 3600:.2f} CPU-hours in all "
-                f"(median {float(np.median(walls)):.0f} s a run).",
+                f"{len(cpu)} runs, {sum(cpu) / 3600:.2f} CPU-hours in all "
+                f"(median {float(np.median(cpu)):.0f} CPU-seconds a run).",
                 "",
             ]
         return out

@@ -173,10 +173,12 @@ def _recorder(progress: Callable[[int], None], shaped: bool) -> Any:
 
         def __init__(self) -> None:
             super().__init__()
-            self.columns: dict[str, list[float]] = {
+            self.columns: dict[str, list[Any]] = {
                 "return": [],
                 "length": [],
                 "timestep": [],
+                # The env's own success flag (info["is_success"]), None where it has none.
+                "success": [],
             }
             if shaped:
                 self.columns.update({"shaped_return": [], "knn_term": [], "potential_term": []})
@@ -194,6 +196,8 @@ def _recorder(progress: Callable[[int], None], shaped: bool) -> Any:
                     cols["return"].append(float(episode["r"]))
                     cols["length"].append(int(episode["l"]))
                     cols["timestep"].append(int(self.num_timesteps))
+                    success = infos[i].get("is_success")
+                    cols["success"].append(None if success is None else bool(success))
                     if shaped:
                         parts = infos[i].get("shaped_episode", {})
                         cols["shaped_return"].append(float(parts.get("r", np.nan)))
@@ -261,6 +265,7 @@ def run_one(
     progress = progress or (lambda _n: None)
     started = time.time()
     t0 = time.perf_counter()
+    cpu0 = time.process_time()
     backend: Any = None
     if arm != "plain":
         backend = tamrm.Engine() if settings.server is None else tamrm.Client(settings.server)
@@ -304,6 +309,8 @@ def run_one(
         "shaping": shaping,
         "policy_sha256": _policy_digest(model),
         "wall_time_s": round(time.perf_counter() - t0, 3),
+        # This process's CPU time: the run's cost whatever else the machine was doing.
+        "cpu_time_s": round(time.process_time() - cpu0, 3),
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)),
         "versions": versions(),
         **({"hooks": hooks.label} if hooks is not None and hooks.label else {}),
