@@ -46,7 +46,8 @@ pub fn limits() -> Limits {
 }
 
 /// The tasks every run starts with: `d` discrete (3 actions, pool of 3, k 2, N 1), `c`
-/// continuous (2-dimensional), `g` discrete with the potential gated.
+/// continuous (2-dimensional), `g` discrete with the potential gated and the kNN term
+/// waiting for a spread of scores (SPEC v1.3).
 pub fn task_configs() -> Vec<(&'static str, proto::TaskConfig)> {
     vec![
         (
@@ -80,6 +81,7 @@ pub fn task_configs() -> Vec<(&'static str, proto::TaskConfig)> {
                 start_step: Some(2),
                 min_pool_size: Some(4),
                 gate_potential: Some(true),
+                require_score_spread: Some(true),
                 max_trajectory_len: Some(64),
                 ..Default::default()
             },
