@@ -39,8 +39,8 @@ import importlib
 
 try:
     # What the submodules import of SB3 (and, through it, of PyTorch).
-    for _module in ("stable_baselines3.common.callbacks", "stable_baselines3.common.vec_env"):
-        importlib.import_module(_module)
+    importlib.import_module("stable_baselines3.common.callbacks")
+    importlib.import_module("stable_baselines3.common.vec_env")
 except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the install
     if (_missing.name or "").split(".")[0] not in ("stable_baselines3", "torch"):
         raise
