@@ -82,8 +82,10 @@ def main() -> int:
         d_times.append(times["direct"])
         h_times.append(times["harness"])
         ratios.append(times["harness"] / times["direct"])
-        print(f"repeat {rep}: direct {times['direct']:.2f} s, harness {times['harness']:.2f} s",
-              file=sys.stderr)
+        print(
+            f"repeat {rep}: direct {times['direct']:.2f} s, harness {times['harness']:.2f} s",
+            file=sys.stderr,
+        )
 
     from tamrm.trial.cli import main as trial_main
 
@@ -100,14 +102,20 @@ def main() -> int:
     assert code == 0
     ideal = sum(singles) / args.jobs
 
-    print(f"\n{args.env}, {args.algo.upper()}, {args.timesteps:,} timesteps, "
-          f"{args.repeats} repeats, {os.cpu_count()} CPUs\n")
+    print(
+        f"\n{args.env}, {args.algo.upper()}, {args.timesteps:,} timesteps, "
+        f"{args.repeats} repeats, {os.cpu_count()} CPUs\n"
+    )
     print("| measurement | floor | trial | ratio | target |")
     print("|---|---|---|---|---|")
-    print(f"| one plain run: median wall time | SB3 directly {statistics.median(d_times):.2f} s "
-          f"| {statistics.median(h_times):.2f} s | {statistics.median(ratios):.3f} | <= 1.05 |")
-    print(f"| {runs} runs on {args.jobs} jobs: wall time | sum of single runs / {args.jobs} "
-          f"= {ideal:.1f} s | {wall:.1f} s (report included) | {wall / ideal:.3f} | <= 1.3 |")
+    print(
+        f"| one plain run: median wall time | SB3 directly {statistics.median(d_times):.2f} s "
+        f"| {statistics.median(h_times):.2f} s | {statistics.median(ratios):.3f} | <= 1.05 |"
+    )
+    print(
+        f"| {runs} runs on {args.jobs} jobs: wall time | sum of single runs / {args.jobs} "
+        f"= {ideal:.1f} s | {wall:.1f} s (report included) | {wall / ideal:.3f} | <= 1.3 |"
+    )
     return 0
 
 
