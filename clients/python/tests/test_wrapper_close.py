@@ -94,3 +94,19 @@ def test_shared_session_survives_one_wrapper(client: tamrm.Client, task_id: str)
         b.step(1)
         b.close()
         assert not session.closed
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_a_wrapper_refused_at_construction_closes_quietly(
+    client: tamrm.Client, task_id: str
+) -> None:
+    """A session that does not fit is a ValueError, and the half-built wrapper's cleanup
+    (gymnasium's ``__del__``) raises nothing of its own."""
+    import gc
+
+    client.create_task(task_id, num_actions=2)
+    envs = gym.make_vec("CartPole-v1", num_envs=2, vectorization_mode="sync")
+    with client.session(task_id, 3) as session, pytest.raises(ValueError):
+        tamrm.gym.VectorShapedReward(envs, session)
+    gc.collect()
+    envs.close()

@@ -256,7 +256,9 @@ class VectorShapedReward(VectorWrapper):
         try:
             super().close(**kwargs)
         finally:
-            close_session(self.session, self.close_session)
+            # gymnasium's __del__ closes a wrapper whose __init__ raised: it has no session.
+            if "close_session" in self.__dict__:
+                close_session(self.session, self.close_session)
 
     # (gymnasium 1.2 types VectorWrapper.step generically.)
     def step(  # type: ignore[override, unused-ignore]
