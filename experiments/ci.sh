@@ -48,5 +48,15 @@ cp "$tmp/report/reproduction.md" "$tmp/from-csv.md"
 "$py" -m tamrm_experiments report --runs "$tmp/archive" --out "$tmp/report/reproduction.md"
 # The same page from the records as from the CSVs, but for the runs directory's name.
 sed "s#$tmp/archive#$tmp/runs#g" "$tmp/report/reproduction.md" | diff - "$tmp/from-csv.md"
+echo "--- regime study: quick mode (E1 and E2: every arm, the tuning, freezing and report code)"
+"$py" -m tamrm_regimes run --stage study --quick --families E1,E2 --jobs 2 --runs "$tmp/regimes"
+"$py" -m tamrm_regimes report --quick --runs "$tmp/regimes" --out "$tmp/regimes-report/regimes.md"
+grep -q "## The regime table" "$tmp/regimes-report/regimes.md"
+grep -q "| E2-proc | tamrm |" "$tmp/regimes-report/regimes.md"
+test "$(find "$tmp/regimes/confirm" -name 'seed*.json.gz' | wc -l)" -eq 44
+# A reader reruns a run from its record and gets the same curve (SIL and the oracle pool too).
+for arm in sil oracle; do
+    "$py" -m tamrm_regimes rerun "$(find "$tmp/regimes/confirm/E1-det" -path "*/$arm-*" -name seed1.json.gz)"
+done
 echo "--- experiments: unit tests"
 "$py" -m pytest -q -p no:cacheprovider tests
