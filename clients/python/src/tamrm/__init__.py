@@ -43,6 +43,7 @@ from tamrm._errors import (
     Unauthenticated,
     Unavailable,
 )
+from tamrm._pool_file import PoolFileError
 from tamrm._server import LocalServer, ServerStartError, find_binary, local_server
 from tamrm._session import Session
 from tamrm._types import (
@@ -82,6 +83,7 @@ __all__ = [
     "InvalidArgument",
     "LocalServer",
     "Pool",
+    "PoolFileError",
     "ResourceExhausted",
     "ServerStartError",
     "Session",
