@@ -10,6 +10,7 @@ Main entry points:
 - :class:`Engine`: the shaping engine in-process (no server), the default for one learner.
 - :class:`Client` (and :mod:`tamrm.aio` for asyncio): the same methods against a server.
 - :meth:`Client.session` -> :class:`Session`: one stream, one round trip per vector step.
+- :meth:`Client.export_pool` / :meth:`Client.import_pool`: a task's pool to a file and back.
 - :mod:`tamrm.gym`: ``ShapedReward`` / ``VectorShapedReward`` gymnasium wrappers.
 - :mod:`tamrm.sb3`: ``ShapedVecEnv`` for Stable-Baselines3 (extra ``tamrm[sb3]``).
 - :mod:`tamrm.pettingzoo`: ``ShapedParallel`` / ``ShapedAEC`` for PettingZoo

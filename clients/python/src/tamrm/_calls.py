@@ -15,9 +15,10 @@ import numpy.typing as npt
 from google.protobuf import message_factory
 from google.protobuf.message import Message
 
-from tamrm import _bridge
+from tamrm import _bridge, _pool_transfer
 from tamrm import _ops as ops
 from tamrm._errors import from_native
+from tamrm._pool_file import PoolFileLike
 from tamrm._proto.tamrm.v1 import shaping_pb2 as pb
 from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, Task, TaskOptions
@@ -179,6 +180,80 @@ class TaskCalls:
                 non-finite score.
         """
         return self._run(ops.add_trajectory(task_id, actions, score), timeout)
+
+    # -- pool files ------------------------------------------------------------------
+
+    def export_pool(
+        self, task_id: str, file: PoolFileLike, *, timeout: Timeout = CLIENT_TIMEOUT
+    ) -> int:
+        """Write a task's config and pool to ``file`` in the pool export format.
+
+        The format (docs/storage.md, "Pool export format") is JSON Lines: a header with
+        the task id, its resolved config, the pool version and the trajectory count, then
+        one line per stored trajectory in ``seq`` order (``seq``, ``score``, ``actions``);
+        :meth:`import_pool`, here or on another server or engine, restores a pool that
+        shapes every step as this one does. The server's ``tamrm pool export/import``
+        read and write the same files.
+
+        Args:
+            task_id: The task.
+            file: A path (written whole or not at all: a temporary file beside it, renamed
+                over it) or a text file object (written to, left open).
+            timeout: Each call's deadline (see the class).
+
+        Returns:
+            The number of trajectories written.
+
+        Raises:
+            TaskNotFound: No such task.
+            OSError: The file cannot be written.
+        """
+        return _pool_transfer.export_pool(self, task_id, file, timeout)
+
+    def import_pool(
+        self,
+        file: PoolFileLike,
+        task_id: str | None = None,
+        *,
+        replace: bool = False,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> Task:
+        """Restore a pool written by :meth:`export_pool` into a task.
+
+        The whole file is read and checked first: a malformed file raises
+        :class:`tamrm.PoolFileError` naming its line, before any call. A task that does
+        not exist is created with the file's config. One that exists must have the same
+        resolved config and an empty pool; with ``replace=True``, a task of another config
+        is deleted and created again (its open sessions fail with ``TaskNotFound``) and a
+        non-empty pool of the same config is reset. Then every trajectory is offered with
+        ``add_trajectory``, in ``seq`` order: the pool is empty and the file holds at most
+        ``pool_capacity`` trajectories, so each is stored, in the same order, with the same
+        actions and scores, and the task shapes every step as the exported one did. Its
+        ``pool_version`` counts its own changes, not the file's.
+
+        Nothing else may write to the task meanwhile: the import checks that each
+        trajectory was stored and the version moved by one each time, and raises
+        ``FailedPrecondition`` if not. A call that fails midway leaves the trajectories
+        added so far; import again with ``replace=True``.
+
+        Args:
+            file: A path, or a text file object (read to its end).
+            task_id: The task to import into; ``None``: the file's.
+            replace: Replace a task of another config, or the trajectories of a non-empty
+                pool, instead of refusing.
+            timeout: Each call's deadline (see the class).
+
+        Returns:
+            The task after the import.
+
+        Raises:
+            PoolFileError: The file is malformed (its message names the line).
+            AlreadyExists: The task exists with another config (and not ``replace``).
+            FailedPrecondition: The task's pool is not empty (and not ``replace``), or
+                the pool changed during the import.
+            OSError: The file cannot be read.
+        """
+        return _pool_transfer.import_pool(self, file, task_id, replace, timeout)
 
     # -- sessions --------------------------------------------------------------------
 

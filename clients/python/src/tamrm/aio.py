@@ -32,6 +32,7 @@ from tamrm._client import Client as _SyncClient
 from tamrm._closing import AsyncClosing
 from tamrm._connection import ConnectionOptions
 from tamrm._errors import SessionClosed
+from tamrm._pool_file import PoolFileLike
 from tamrm._session import Session
 from tamrm._types import AddTrajectoryResult, Pool, StepResult, Task, TaskConfig, TaskOptions
 
@@ -256,6 +257,25 @@ class Client(AsyncClosing):
     ) -> AddTrajectoryResult:
         """Offer a trajectory to a task's pool; see :meth:`tamrm.Client.add_trajectory`."""
         return await _in_thread(self._sync.add_trajectory, task_id, actions, score, timeout=timeout)
+
+    async def export_pool(
+        self, task_id: str, file: PoolFileLike, *, timeout: Timeout = CLIENT_TIMEOUT
+    ) -> int:
+        """Write a task's pool to a file; see :meth:`tamrm.Client.export_pool`."""
+        return await _in_thread(self._sync.export_pool, task_id, file, timeout=timeout)
+
+    async def import_pool(
+        self,
+        file: PoolFileLike,
+        task_id: str | None = None,
+        *,
+        replace: bool = False,
+        timeout: Timeout = CLIENT_TIMEOUT,
+    ) -> Task:
+        """Restore a pool from a file; see :meth:`tamrm.Client.import_pool`."""
+        return await _in_thread(
+            self._sync.import_pool, file, task_id, replace=replace, timeout=timeout
+        )
 
     def session(self, task_id: str, num_envs: int = 1, *, local: bool = False) -> AsyncSession:
         """Return an (unopened) :class:`AsyncSession`; open it with ``async with`` or ``await``.
