@@ -31,6 +31,16 @@ with the same values as evaluating V(s) and V(s') on every step. :class:`Shaping
 records the shaped parts in the model's logger::
 
     model.learn(100_000, callback=tamrm.sb3.ShapingLogger())
+
+:class:`PoolCheckpointCallback` is SB3's ``CheckpointCallback`` that also saves the task's
+pool beside each model (``a2c_5000_steps.zip``, ``a2c_5000_steps.pool.jsonl``), and
+:func:`restore_pool` puts a checkpoint's pool back, so that training resumed from it
+shapes as if it had never stopped::
+
+    model.learn(100_000, callback=tamrm.sb3.PoolCheckpointCallback(5_000, "ckpt", "a2c"))
+    # later, in another process
+    tamrm.sb3.restore_pool(client, "ckpt/a2c_5000_steps.zip")
+    model = A2C.load("ckpt/a2c_5000_steps.zip", env=env)
 """
 
 from __future__ import annotations
@@ -51,8 +61,18 @@ except ModuleNotFoundError as _missing:  # pragma: no branch - depends on the in
         name=_missing.name,
     ) from None
 
+from tamrm.sb3._checkpoint import PoolCheckpointCallback, pool_path, restore_pool
 from tamrm.sb3._critic import ModelValueFn, model_value_fn
 from tamrm.sb3._logger import ShapingLogger
 from tamrm.sb3._vec_env import ShapedVecEnv, ShapingStats
 
-__all__ = ["ModelValueFn", "ShapedVecEnv", "ShapingLogger", "ShapingStats", "model_value_fn"]
+__all__ = [
+    "ModelValueFn",
+    "PoolCheckpointCallback",
+    "ShapedVecEnv",
+    "ShapingLogger",
+    "ShapingStats",
+    "model_value_fn",
+    "pool_path",
+    "restore_pool",
+]

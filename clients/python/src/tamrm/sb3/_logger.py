@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import VecEnvWrapper
 
-from tamrm.sb3._vec_env import ShapedVecEnv, ShapingStats
+from tamrm.sb3._vec_env import ShapedVecEnv, ShapingStats, shaped_env_of
 
 __all__ = ["ShapingLogger"]
 
@@ -36,16 +33,8 @@ class ShapingLogger(BaseCallback):
         self._pool = (-1, 0)  # (pool version, pool size) of the last get_task
 
     def _init_callback(self) -> None:
-        env: Any = self.training_env
-        while self.env is None and isinstance(env, VecEnvWrapper):
-            if isinstance(env, ShapedVecEnv):
-                self.env = env
-            env = env.venv
         if self.env is None:
-            raise ValueError(
-                "ShapingLogger: the model's env contains no ShapedVecEnv; pass it: "
-                "ShapingLogger(env)"
-            )
+            self.env = shaped_env_of(self.training_env, "ShapingLogger")
         self.env.take_stats()  # steps shaped before learn() are not this run's
         self._totals = ShapingStats()
 

@@ -32,7 +32,7 @@ from tamrm._values import ObsBatch, ValueFn, copy_obs, set_obs_row, value_kwargs
 from tamrm._wrapping import check_session, close_session
 from tamrm.sb3._critic import ModelValueFn, model_value_fn
 
-__all__ = ["ShapedVecEnv", "ShapingStats"]
+__all__ = ["ShapedVecEnv", "ShapingStats", "shaped_env_of"]
 
 
 _MONITOR_ABOVE = (
@@ -399,3 +399,19 @@ class ShapedVecEnv(VecEnvWrapper):
         _bridge.record_step(self, infos, dones, rewards, result, cfg.alpha, cfg.beta)
         self._obs = obs
         return raw_obs, result.rewards.astype(np.float32), dones, infos
+
+
+def shaped_env_of(training_env: VecEnv, callback: str) -> ShapedVecEnv:
+    """The :class:`ShapedVecEnv` in a model's env, found through its ``venv`` chain.
+
+    Raises:
+        ValueError: There is none; the message tells to pass it to ``callback``.
+    """
+    env: Any = training_env
+    while isinstance(env, VecEnvWrapper):
+        if isinstance(env, ShapedVecEnv):
+            return env
+        env = env.venv
+    raise ValueError(
+        f"{callback}: the model's env contains no ShapedVecEnv; pass it: {callback}(env=...)"
+    )
