@@ -99,6 +99,10 @@ def test_cartpole_trial_null_is_plain_and_resume(tmp_path: Path) -> None:
     assert again["policy_sha256"] == records["tamrm-1"]["policy_sha256"]
     # Settings that change the runs are refused on resume.
     assert main([*argv, "--min-pool-size", "2", "--resume"]) == 2
+    # The report again, from the records alone.
+    (out / "report.md").unlink()
+    assert main(["--out", str(out), "--report-only"]) == 0
+    assert "identical to `plain` in 2 of 2 seeds" in (out / "report.md").read_text()
 
 
 def test_verdicts_from_many_seeds(tmp_path: Path) -> None:

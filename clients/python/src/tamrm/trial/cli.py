@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         epilog="docs/trial.md explains the report and what a trial costs.",
     )
-    p.add_argument("--env", required=True, help="a registered gymnasium id")
+    p.add_argument("--env", help="a registered gymnasium id (required unless --report-only)")
     p.add_argument(
         "--env-module",
         action="append",
@@ -75,7 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--env-kwargs", default="{}", metavar="JSON", help="keyword arguments of gymnasium.make"
     )
-    p.add_argument("--algo", required=True, choices=ALGOS, help="Stable-Baselines3 algorithm")
+    p.add_argument(
+        "--algo", choices=ALGOS, help="Stable-Baselines3 algorithm (required unless --report-only)"
+    )
     p.add_argument(
         "--timesteps",
         type=int,
@@ -334,7 +336,10 @@ def _prepare_out(settings: TrialSettings, out: Path, resume: bool) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.report_only and (args.env is None or args.algo is None):
+        parser.error("--env and --algo are required (unless --report-only)")
     try:
         if args.report_only:
             path = _trial_file(args.out)
