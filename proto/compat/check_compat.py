@@ -316,8 +316,13 @@ def load(path: Path) -> pb.FileDescriptorSet:
 
 
 def baselines(directory: Path = HERE) -> list[Path]:
-    """The committed baselines, oldest name first."""
-    return sorted(directory.glob(f"{BASELINE_PREFIX}*.binpb"))
+    """The committed baselines, oldest version first (1.9 before 1.10)."""
+
+    def version(path: Path) -> tuple[int, ...]:
+        text = path.name.removeprefix(BASELINE_PREFIX).removesuffix(".binpb")
+        return tuple(int(part) for part in text.split(".") if part.isdigit())
+
+    return sorted(directory.glob(f"{BASELINE_PREFIX}*.binpb"), key=version)
 
 
 def main(argv: list[str] | None = None) -> int:

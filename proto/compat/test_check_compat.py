@@ -451,8 +451,9 @@ def test_write_records_a_new_baseline_once_and_refuses_a_breaking_proto(
     assert cc.main(["--baseline-dir", str(dir_)]) == 2  # no baseline: not a silent pass
     assert cc.main(["--baseline-dir", str(dir_), "--write", "9.0"]) == 0
     written = dir_ / "tamrm.v1.9.0.binpb"
-    assert cc.breaking_changes(cc.load(written), BASE) == []
-    assert cc.breaking_changes(BASE, cc.load(written)) == []
+    current = cc.compile_protos("protoc")
+    assert cc.breaking_changes(cc.load(written), current) == []
+    assert cc.breaking_changes(current, cc.load(written)) == []
     assert cc.main(["--baseline-dir", str(dir_), "--write", "9.0"]) == 2  # never rewritten
     broken = edited_proto(tmp_path, "uint64 steps_shaped = 7;", "uint64 steps_done = 7;")
     args = ["--baseline-dir", str(dir_), "--current", str(broken)]
@@ -461,3 +462,23 @@ def test_write_records_a_new_baseline_once_and_refuses_a_breaking_proto(
     capsys.readouterr()
     assert cc.main(args) == 1
     assert "steps_shaped = 7 was renamed to steps_done" in capsys.readouterr().out
+
+
+def test_the_newest_baseline_records_the_current_proto() -> None:
+    """A change of proto/ lands with its baseline, so the next change is checked against it."""
+    unrecorded = cc.breaking_changes(cc.compile_protos("protoc"), BASE)
+    assert unrecorded == [], (
+        "proto/ has additions the newest baseline does not record; record them with "
+        "`python proto/compat/check_compat.py --write <next version>` (docs/languages.md): "
+        + "; ".join(unrecorded)
+    )
+
+
+def test_baselines_are_ordered_by_version_not_by_name(tmp_path: Path) -> None:
+    for v in ("1.10", "1.2", "1.9"):
+        (tmp_path / f"tamrm.v1.{v}.binpb").write_bytes(b"")
+    assert [p.name for p in cc.baselines(tmp_path)] == [
+        "tamrm.v1.1.2.binpb",
+        "tamrm.v1.1.9.binpb",
+        "tamrm.v1.1.10.binpb",
+    ]
