@@ -21,6 +21,7 @@
 #![warn(missing_docs)]
 
 pub mod auth;
+pub mod build_info;
 pub mod core;
 
 /// The global allocator of the `tamrm` binary, and of benchmarks that run the server in

@@ -16,7 +16,7 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:50051";
 
 /// `tamrm`: the TAMRM reward-shaping server.
 #[derive(Debug, Parser)]
-#[command(name = "tamrm", version, about, long_about = None)]
+#[command(name = "tamrm", version = crate::build_info::describe(), about, long_about = None)]
 pub struct Cli {
     /// What to do.
     #[command(subcommand)]

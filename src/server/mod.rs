@@ -112,6 +112,7 @@ const CONNECTION_WINDOW: u32 = 16 << 20;
 
 /// Opens the store, restores every task, binds and starts serving.
 pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
+    tracing::info!("tamrm {}", crate::build_info::describe());
     // Before anything else: a bad certificate must not leave a half-started server.
     let tls = tls::server_config(&settings.tls)?;
     // Tenant quotas are kept for every replica in a shared store (when there are keys,

@@ -189,6 +189,20 @@ impl Metrics {
             m.store_syncs.clone(),
         );
         registry.register("tamrm_tasks", "Tasks held", m.tasks.clone());
+        // Exposed as tamrm_build_info{...} 1 (an info metric takes the _info suffix).
+        registry.register(
+            "tamrm_build",
+            "The server's version, commit, proto API version and data dir format",
+            prometheus_client::metrics::info::Info::new(vec![
+                ("version", crate::build_info::VERSION.to_owned()),
+                ("commit", crate::build_info::COMMIT.to_owned()),
+                ("proto", crate::build_info::PROTO.to_owned()),
+                (
+                    "data_dir_format",
+                    crate::build_info::DATA_DIR_FORMAT.to_string(),
+                ),
+            ]),
+        );
         registry.register(
             "tamrm_stream_bytes_reserved",
             "Bytes the open Shape streams reckon to hold (limit: max_total_stream_bytes)",

@@ -22,3 +22,4 @@ mod redis_tls;
 mod server;
 mod tls;
 mod undecodable;
+mod version;

@@ -97,6 +97,14 @@ async fn rpcs_and_shaping_move_the_counters() {
     let m = scrape(maddr).await;
     assert_eq!(m.value("tamrm_tasks", &[]), 0.0);
     assert_eq!(m.value("tamrm_open_streams", &[]), 0.0);
+    let format = tamrm::build_info::DATA_DIR_FORMAT.to_string();
+    let build = [
+        ("version", env!("CARGO_PKG_VERSION")),
+        ("commit", tamrm::build_info::COMMIT),
+        ("proto", tamrm::build_info::PROTO),
+        ("data_dir_format", format.as_str()),
+    ];
+    assert_eq!(m.value("tamrm_build_info", &build), 1.0);
 
     let mut c = connect(server.addr()).await;
     create(&mut c, "m", discrete(3, 8, 2, 0, 1)).await;

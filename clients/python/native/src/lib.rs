@@ -28,6 +28,8 @@ pub(crate) use errors::{client_error, runtime, status, status_error, StatusError
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("StatusError", m.py().get_type::<StatusError>())?;
+    // The workspace's version, which maturin also gives the Python package.
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("MAX_BUSY_POLL_US", options::MAX_BUSY_POLL_US)?;
     m.add_class::<engine::Engine>()?;
     m.add_class::<channel::Channel>()?;

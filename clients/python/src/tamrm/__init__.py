@@ -25,6 +25,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from tamrm import _bridge
 from tamrm._address import DEFAULT_ADDRESS
 from tamrm._calls import DEFAULT_TIMEOUT
 from tamrm._client import Client
@@ -66,7 +67,7 @@ if TYPE_CHECKING:
     import tamrm.rllib as rllib
     import tamrm.sb3 as sb3
 
-__version__ = "0.1.0"
+__version__: str = _bridge.VERSION
 
 __all__ = [
     "CONFIG_FIELDS",

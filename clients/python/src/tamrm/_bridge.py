@@ -16,6 +16,8 @@ What crosses:
   :class:`tamrm.Session`).
 - :class:`Mlp`, :class:`VecStep`, :func:`record_step`: Stable-Baselines3's fast path
   (:mod:`tamrm.sb3`).
+- ``__version__``: the version the extension was built as (the workspace's, as the
+  package's; :data:`tamrm.__version__`).
 - :class:`StatusError`: every failed call; ``tamrm._errors.from_native`` turns it into a
   :class:`tamrm.TamrmError`.
 """
@@ -33,8 +35,10 @@ from tamrm._native import (
     VecStep,
     record_step,
 )
+from tamrm._native import __version__ as VERSION
 
 __all__ = [
+    "VERSION",
     "MAX_BUSY_POLL_US",
     "Channel",
     "ChannelOptions",

@@ -92,6 +92,7 @@ class Engine:
     def description(self) -> str: ...
 
 MAX_BUSY_POLL_US: int
+__version__: str
 
 class ChannelOptions:
     def __init__(
