@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import re
 import shutil
@@ -19,7 +20,14 @@ from tamrm import _bridge
 if TYPE_CHECKING:
     from tamrm._connection import ConnectionOptions
 
-__all__ = ["LocalServer", "ServerStartError", "find_binary", "health_check", "local_server"]
+__all__ = [
+    "LocalServer",
+    "ServerStartError",
+    "find_binary",
+    "health_check",
+    "installed_binary",
+    "local_server",
+]
 
 _LISTENING = re.compile(r"listening on (\S+)")
 _ADDRESS = re.compile(r"^\s*(\S+):(\d+)\s*$")
@@ -33,12 +41,30 @@ def _executable(path: Path) -> bool:
     return path.is_file() and os.access(path, os.X_OK)
 
 
+def installed_binary() -> Path | None:
+    """The server binary the wheel installed as the ``tamrm`` command, if it did.
+
+    Found through the package's own record of its files, so a ``tamrm`` of another
+    installation earlier on ``PATH`` is never taken for it.
+    """
+    try:
+        files = importlib.metadata.distribution("tamrm").files or []
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    for file in files:
+        if file.name == "tamrm" and file.parent.name in ("bin", "Scripts"):
+            path = Path(str(file.locate())).resolve()
+            if _executable(path):
+                return path
+    return None
+
+
 def find_binary() -> Path:
     """Locate the ``tamrm`` server binary.
 
-    Looked up, in order: the ``TAMRM_BIN`` environment variable, ``tamrm`` on ``PATH``,
-    then ``target/release/tamrm`` in the repository this package (or the current
-    directory) lives in.
+    Looked up, in order: the ``TAMRM_BIN`` environment variable, the binary the wheel
+    installed, ``tamrm`` on ``PATH``, then ``target/release/tamrm`` in the repository this
+    package (or the current directory) lives in.
 
     Raises:
         ServerStartError: Not found (or ``TAMRM_BIN`` is not an executable file).
@@ -49,6 +75,9 @@ def find_binary() -> Path:
         if not _executable(path):
             raise ServerStartError(f"TAMRM_BIN={env} is not an executable file")
         return path.resolve()
+    installed = installed_binary()
+    if installed is not None:
+        return installed
     found = shutil.which("tamrm")
     if found:
         return Path(found).resolve()
@@ -59,8 +88,9 @@ def find_binary() -> Path:
             if _executable(candidate):
                 return candidate
     raise ServerStartError(
-        "tamrm binary not found: set TAMRM_BIN, put tamrm on PATH, or build it with "
-        "`cargo build --release` in the repository"
+        "tamrm binary not found: install the tamrm wheel (it has the server), set "
+        "TAMRM_BIN, put tamrm on PATH, or build it with `cargo build --release` in the "
+        "repository"
     )
 
 
