@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
+pub use crate::net::parse_addr;
 use crate::net::tls::{HealthcheckTls, TlsFiles};
 use crate::store::RedisTls;
 
@@ -39,6 +40,13 @@ pub enum Command {
     /// needed before opening the data dir with a build of format 2, and otherwise
     /// never (a running server compacts when its log passes 64 MiB).
     Compact(CompactArgs),
+    /// A server's tasks: `tasks list`, `tasks get ID` (`--json` for scripts).
+    Tasks(crate::cli::TasksArgs),
+    /// A task's pool as a file: `pool export ID [-o FILE]`, `pool import FILE [--task
+    /// NEW_ID] [--replace]` (the format of docs/storage.md, "Pool export format").
+    Pool(crate::cli::PoolArgs),
+    /// The shell completion script of `tamrm` (bash, zsh, fish, elvish, powershell).
+    Completions(crate::cli::CompletionsArgs),
 }
 
 /// Flags of `tamrm compact`.
@@ -429,31 +437,6 @@ impl Settings {
         self.limits.apply(&a.limits);
         self.tls.apply(&a.tls);
     }
-}
-
-/// Parses `host:port`, resolving a host name (`localhost:50051`); an IPv4 address is
-/// preferred when the name has several.
-pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
-    use std::net::ToSocketAddrs;
-    let s = s.trim();
-    if let Ok(a) = s.parse() {
-        return Ok(a);
-    }
-    if s.contains("://") {
-        return Err(format!(
-            "expected host:port, got {s:?} (no scheme such as http://)"
-        ));
-    }
-    let addrs: Vec<SocketAddr> = s
-        .to_socket_addrs()
-        .map_err(|e| format!("expected host:port, got {s:?}: {e}"))?
-        .collect();
-    addrs
-        .iter()
-        .find(|a| a.is_ipv4())
-        .or(addrs.first())
-        .copied()
-        .ok_or_else(|| format!("{s:?} resolves to no address"))
 }
 
 fn deserialize_addr<'de, D: serde::Deserializer<'de>>(

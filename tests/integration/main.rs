@@ -15,6 +15,8 @@ mod group_commit;
 mod limits;
 mod metrics;
 mod migration;
+mod pool_cli;
+mod pool_metrics;
 mod quotas;
 mod redis;
 mod redis_pool_rule;
