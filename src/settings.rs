@@ -209,6 +209,10 @@ pub struct ServeArgs {
     /// port) [default: off].
     #[arg(long, env = "TAMRM_METRICS_LISTEN", value_name = "ADDR", value_parser = parse_addr)]
     pub metrics_listen: Option<SocketAddr>,
+    /// Serve a read-only page of the tasks and their pools at `http://ADDR/` on the
+    /// metrics listener (needs --metrics-listen; with --api-keys, a reader key).
+    #[arg(long, env = "TAMRM_DASHBOARD")]
+    pub dashboard: bool,
     /// Threads of the async runtime that serves every connection [default: one per
     /// CPU]. 1 suits a server that shares a small machine with the learner it serves
     /// (see docs/configuration.md).
@@ -253,6 +257,8 @@ pub struct FileSettings {
     /// Metrics address (`host:port`).
     #[serde(default, deserialize_with = "deserialize_addr")]
     pub metrics_listen: Option<SocketAddr>,
+    /// The dashboard on the metrics listener.
+    pub dashboard: Option<bool>,
     /// Threads of the async runtime.
     pub worker_threads: Option<usize>,
 }
@@ -284,6 +290,8 @@ pub struct Settings {
     pub tls: TlsFiles,
     /// Where to serve Prometheus metrics; `None`: no metrics.
     pub metrics_listen: Option<SocketAddr>,
+    /// Whether the metrics listener also serves the dashboard.
+    pub dashboard: bool,
     /// Threads of the async runtime; `None`: one per CPU.
     pub worker_threads: Option<usize>,
 }
@@ -311,6 +319,7 @@ impl Default for Settings {
             api_keys: None,
             tls: TlsFiles::default(),
             metrics_listen: None,
+            dashboard: false,
             worker_threads: None,
         }
     }
@@ -327,6 +336,11 @@ impl Settings {
     pub fn resolve(args: &ServeArgs) -> Result<Settings, SettingsError> {
         let s = Settings::layered(args)?;
         s.tls.check().map_err(SettingsError)?;
+        if s.dashboard && s.metrics_listen.is_none() {
+            return Err(SettingsError(
+                "dashboard is served on the metrics listener: give --metrics-listen (TAMRM_METRICS_LISTEN) too".into(),
+            ));
+        }
         if let Some(url) = &s.store {
             if s.data_dir.is_some() {
                 return Err(SettingsError(
@@ -401,6 +415,7 @@ impl Settings {
             self.api_keys.clone_from(&f.api_keys);
         }
         self.metrics_listen = f.metrics_listen.or(self.metrics_listen);
+        self.dashboard = f.dashboard.unwrap_or(self.dashboard);
         self.worker_threads = f.worker_threads.or(self.worker_threads);
         if let Some(l) = &f.limits {
             self.limits.apply(l);
@@ -433,6 +448,7 @@ impl Settings {
             self.api_keys.clone_from(&a.api_keys);
         }
         self.metrics_listen = a.metrics_listen.or(self.metrics_listen);
+        self.dashboard |= a.dashboard;
         self.worker_threads = a.worker_threads.or(self.worker_threads);
         self.limits.apply(&a.limits);
         self.tls.apply(&a.tls);

@@ -11,6 +11,9 @@
 //!   size, best and worst score;
 //! - the `process_*` metrics of the server's process, read from `/proc` when scraped.
 //!
+//! With `--dashboard`, the same listener serves a read-only page of the tasks and their
+//! pools ([`Dashboard`]).
+//!
 //! With metrics off nothing is recorded: the layer passes requests through, streams hold
 //! no [`ShapeMetrics`] and the store is not wrapped.
 //!
@@ -22,6 +25,7 @@
 
 mod grpc;
 mod http;
+mod page;
 mod process;
 mod store;
 
@@ -40,6 +44,7 @@ pub use grpc::{
     GrpcMetricsLayer, GrpcMetricsService, MeteredBody, MeteredRequestBody, ResponseFuture,
 };
 pub use http::listen;
+pub use page::{task_page, Dashboard};
 pub use store::{metered, MeteredStore};
 
 /// Tasks that get their own `task` label value; later tasks share [`OTHER_TASKS`].
