@@ -13,6 +13,8 @@
 //!   layer before any handler runs;
 //! - [`server`], [`settings`], [`limits`]: the server assembly and layered settings;
 //! - [`telemetry`]: Prometheus metrics (`--metrics-listen`);
+//! - [`cli`]: the client-side commands (`tamrm tasks`, `tamrm pool`), a gRPC client of the
+//!   server like any other;
 //! - leaf modules, which use nothing of the crate and which any layer may use:
 //!   [`task_key`] (the key of a tenant's task), [`net`] (TLS files, the text of a failed
 //!   call), [`limits`] (the server limits), [`quota`] (tenant quotas shared by the
@@ -22,6 +24,7 @@
 
 pub mod auth;
 pub mod build_info;
+pub mod cli;
 pub mod core;
 
 /// The global allocator of the `tamrm` binary, and of benchmarks that run the server in

@@ -1,6 +1,7 @@
-//! The `tamrm` binary: `tamrm serve`, `tamrm healthcheck`, `tamrm key` and `tamrm compact`.
+//! The `tamrm` binary: `tamrm serve`, `tamrm healthcheck`, `tamrm key`, `tamrm compact`,
+//! and the client-side `tamrm tasks`, `tamrm pool` and `tamrm completions` (src/cli/).
 
-use clap::Parser;
+use clap::{CommandFactory, Parser};
 use tamrm::settings::{Cli, Command, CompactArgs, HealthcheckArgs, KeyArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
@@ -22,6 +23,9 @@ fn main() -> std::process::ExitCode {
         Command::Healthcheck(h) => return healthcheck(&h),
         Command::Key(k) => return key(&k),
         Command::Compact(c) => return compact(&c),
+        Command::Tasks(t) => return tamrm::cli::tasks(&t),
+        Command::Pool(p) => return tamrm::cli::pool(&p),
+        Command::Completions(c) => return tamrm::cli::completions(&c, &mut Cli::command()),
     };
     let settings = match Settings::resolve(&args) {
         Ok(s) => s,

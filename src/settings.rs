@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use serde::Deserialize;
 
 use crate::limits::{Limits, LimitsLayer};
+pub use crate::net::parse_addr;
 use crate::net::tls::{HealthcheckTls, TlsFiles};
 use crate::store::RedisTls;
 
@@ -39,6 +40,13 @@ pub enum Command {
     /// needed before opening the data dir with a build of format 2, and otherwise
     /// never (a running server compacts when its log passes 64 MiB).
     Compact(CompactArgs),
+    /// A server's tasks: `tasks list`, `tasks get ID` (`--json` for scripts).
+    Tasks(crate::cli::TasksArgs),
+    /// A task's pool as a file: `pool export ID [-o FILE]`, `pool import FILE [--task
+    /// NEW_ID] [--replace]` (the format of docs/storage.md, "Pool export format").
+    Pool(crate::cli::PoolArgs),
+    /// The shell completion script of `tamrm` (bash, zsh, fish, elvish, powershell).
+    Completions(crate::cli::CompletionsArgs),
 }
 
 /// Flags of `tamrm compact`.
@@ -201,6 +209,10 @@ pub struct ServeArgs {
     /// port) [default: off].
     #[arg(long, env = "TAMRM_METRICS_LISTEN", value_name = "ADDR", value_parser = parse_addr)]
     pub metrics_listen: Option<SocketAddr>,
+    /// Serve a read-only page of the tasks and their pools at `http://ADDR/` on the
+    /// metrics listener (needs --metrics-listen; with --api-keys, a reader key).
+    #[arg(long, env = "TAMRM_DASHBOARD")]
+    pub dashboard: bool,
     /// Threads of the async runtime that serves every connection [default: one per
     /// CPU]. 1 suits a server that shares a small machine with the learner it serves
     /// (see docs/configuration.md).
@@ -245,6 +257,8 @@ pub struct FileSettings {
     /// Metrics address (`host:port`).
     #[serde(default, deserialize_with = "deserialize_addr")]
     pub metrics_listen: Option<SocketAddr>,
+    /// The dashboard on the metrics listener.
+    pub dashboard: Option<bool>,
     /// Threads of the async runtime.
     pub worker_threads: Option<usize>,
 }
@@ -276,6 +290,8 @@ pub struct Settings {
     pub tls: TlsFiles,
     /// Where to serve Prometheus metrics; `None`: no metrics.
     pub metrics_listen: Option<SocketAddr>,
+    /// Whether the metrics listener also serves the dashboard.
+    pub dashboard: bool,
     /// Threads of the async runtime; `None`: one per CPU.
     pub worker_threads: Option<usize>,
 }
@@ -303,6 +319,7 @@ impl Default for Settings {
             api_keys: None,
             tls: TlsFiles::default(),
             metrics_listen: None,
+            dashboard: false,
             worker_threads: None,
         }
     }
@@ -319,6 +336,11 @@ impl Settings {
     pub fn resolve(args: &ServeArgs) -> Result<Settings, SettingsError> {
         let s = Settings::layered(args)?;
         s.tls.check().map_err(SettingsError)?;
+        if s.dashboard && s.metrics_listen.is_none() {
+            return Err(SettingsError(
+                "dashboard is served on the metrics listener: give --metrics-listen (TAMRM_METRICS_LISTEN) too".into(),
+            ));
+        }
         if let Some(url) = &s.store {
             if s.data_dir.is_some() {
                 return Err(SettingsError(
@@ -393,6 +415,7 @@ impl Settings {
             self.api_keys.clone_from(&f.api_keys);
         }
         self.metrics_listen = f.metrics_listen.or(self.metrics_listen);
+        self.dashboard = f.dashboard.unwrap_or(self.dashboard);
         self.worker_threads = f.worker_threads.or(self.worker_threads);
         if let Some(l) = &f.limits {
             self.limits.apply(l);
@@ -425,35 +448,11 @@ impl Settings {
             self.api_keys.clone_from(&a.api_keys);
         }
         self.metrics_listen = a.metrics_listen.or(self.metrics_listen);
+        self.dashboard |= a.dashboard;
         self.worker_threads = a.worker_threads.or(self.worker_threads);
         self.limits.apply(&a.limits);
         self.tls.apply(&a.tls);
     }
-}
-
-/// Parses `host:port`, resolving a host name (`localhost:50051`); an IPv4 address is
-/// preferred when the name has several.
-pub fn parse_addr(s: &str) -> Result<SocketAddr, String> {
-    use std::net::ToSocketAddrs;
-    let s = s.trim();
-    if let Ok(a) = s.parse() {
-        return Ok(a);
-    }
-    if s.contains("://") {
-        return Err(format!(
-            "expected host:port, got {s:?} (no scheme such as http://)"
-        ));
-    }
-    let addrs: Vec<SocketAddr> = s
-        .to_socket_addrs()
-        .map_err(|e| format!("expected host:port, got {s:?}: {e}"))?
-        .collect();
-    addrs
-        .iter()
-        .find(|a| a.is_ipv4())
-        .or(addrs.first())
-        .copied()
-        .ok_or_else(|| format!("{s:?} resolves to no address"))
 }
 
 fn deserialize_addr<'de, D: serde::Deserializer<'de>>(

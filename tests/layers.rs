@@ -4,8 +4,9 @@
 //!   the service and the server knows of gRPC;
 //! - no import circle between the crate's modules; the error type, which nearly every
 //!   module uses, uses leaf modules only (modules that use nothing of the crate); nothing
-//!   uses the server, only the server uses the settings, and the Python extension uses
-//!   the library's public seams, not the server's internals;
+//!   uses the server, only the server uses the settings, the client-side commands
+//!   (`cli`) reach a server through its RPCs only, and the Python extension uses the
+//!   library's public seams, not the server's internals;
 //! - one source per shared fact: the `TaskConfig` fields of the proto are the core's, and
 //!   every server limit is documented with its flag and environment variable.
 
@@ -142,6 +143,22 @@ fn the_service_maps_protocols_and_never_touches_files() {
             // The core's episodes (the proto's EpisodeEnds is protocol, not an episode).
             "word:Episode",
             "Pool::new",
+        ],
+    );
+}
+
+#[test]
+fn the_client_commands_are_a_client_like_any_other() {
+    // `tamrm tasks` and `tamrm pool` reach a server only through its RPCs.
+    forbid(
+        "cli",
+        &[
+            "crate::server",
+            "crate::settings",
+            "crate::registry",
+            "crate::store",
+            "crate::session",
+            "crate::auth",
         ],
     );
 }

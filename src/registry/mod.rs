@@ -359,8 +359,8 @@ impl Registry {
             .count()
     }
 
-    /// Every task of every tenant, ordered by key (for the server's own work: counters).
-    fn all(&self) -> Vec<Arc<TaskHandle>> {
+    /// Every task of every tenant, ordered by key (counters, the metrics' pool gauges).
+    pub fn all(&self) -> Vec<Arc<TaskHandle>> {
         let mut v: Vec<_> = self.tasks.iter().map(|e| e.value().clone()).collect();
         v.sort_by(|a, b| a.key().cmp(b.key()));
         v

@@ -183,9 +183,18 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         reflection(tonic_reflection::server::Builder::configure()).build_v1alpha()?;
     let metrics_addr = match (settings.metrics_listen, &metrics) {
         (Some(at), Some(m)) => Some(
-            telemetry::listen(at, m.clone(), registry.clone(), shutdown.clone())
-                .await
-                .map_err(|source| StartError::Bind { addr: at, source })?,
+            telemetry::listen(
+                at,
+                m.clone(),
+                registry.clone(),
+                settings.dashboard.then(|| telemetry::Dashboard {
+                    tasks: registry.clone(),
+                    access: access.clone(),
+                }),
+                shutdown.clone(),
+            )
+            .await
+            .map_err(|source| StartError::Bind { addr: at, source })?,
         ),
         _ => None,
     };

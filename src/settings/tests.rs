@@ -116,6 +116,14 @@ fn defaults_then_file_then_env_then_flags() {
     std::env::remove_var("TAMRM_MAX_TASKS");
     std::env::remove_var("TAMRM_METRICS_LISTEN");
     std::env::remove_var("TAMRM_WORKER_THREADS");
+    // The dashboard is served on the metrics listener: it needs one (here, where no test
+    // sets TAMRM_METRICS_LISTEN meanwhile).
+    let e = Settings::resolve(&parse(&["--dashboard"]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--metrics-listen"), "{e}");
+    let s = Settings::resolve(&parse(&["--config", file_arg, "--dashboard"])).unwrap();
+    assert!(s.dashboard && s.metrics_listen.is_some());
     for bad in ["0", "1025"] {
         let e = Settings::resolve(&parse(&["--worker-threads", bad]))
             .unwrap_err()

@@ -7,20 +7,30 @@
 //!   episode ends, a few atomic operations per batch (nothing per entry);
 //! - [`MeteredStore`], a [`Store`](crate::store::Store) decorator: store commits' latency
 //!   and the pool changes they made;
-//! - the task gauge, read from the registry when scraped.
+//! - the gauges read from the registry when scraped: tasks held, and per task its pool's
+//!   size, best and worst score;
+//! - the `process_*` metrics of the server's process, read from `/proc` when scraped.
+//!
+//! With `--dashboard`, the same listener serves a read-only page of the tasks and their
+//! pools ([`Dashboard`]).
 //!
 //! With metrics off nothing is recorded: the layer passes requests through, streams hold
 //! no [`ShapeMetrics`] and the store is not wrapped.
 //!
 //! Label cardinality is bounded: gRPC labels come from the served services' descriptors
 //! (an unknown path is `unknown`), and the per-task label names the first
-//! [`MAX_TASK_LABELS`] tasks seen and [`OTHER_TASKS`] for the rest.
+//! [`MAX_TASK_LABELS`] tasks seen and [`OTHER_TASKS`] for the rest (for the pool gauges:
+//! the pools of the rest together, their sizes summed, the best of their best scores and
+//! the worst of their worst).
 
 mod grpc;
 mod http;
+mod page;
+mod process;
 mod store;
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -34,6 +44,7 @@ pub use grpc::{
     GrpcMetricsLayer, GrpcMetricsService, MeteredBody, MeteredRequestBody, ResponseFuture,
 };
 pub use http::listen;
+pub use page::{task_page, Dashboard};
 pub use store::{metered, MeteredStore};
 
 /// Tasks that get their own `task` label value; later tasks share [`OTHER_TASKS`].
@@ -109,6 +120,12 @@ pub struct Metrics {
     stream_bytes: Gauge,
     /// The data dir's syncs, brought up to the store's count at every scrape.
     store_syncs: Counter,
+    pool_size: Family<TaskLabel, Gauge>,
+    pool_best: Family<TaskLabel, Gauge<f64, AtomicU64>>,
+    pool_worst: Family<TaskLabel, Gauge<f64, AtomicU64>>,
+    process: process::ProcessMetrics,
+    /// One scrape at a time sets the gauges read at scrape time.
+    scraping: parking_lot::Mutex<()>,
     labels: TaskLabels,
 }
 
@@ -145,6 +162,11 @@ impl Metrics {
             tasks: Gauge::default(),
             stream_bytes: Gauge::default(),
             store_syncs: Counter::default(),
+            pool_size: Family::default(),
+            pool_best: Family::default(),
+            pool_worst: Family::default(),
+            process: process::ProcessMetrics::register(&mut registry),
+            scraping: parking_lot::Mutex::new(()),
             labels: TaskLabels::new(max_task_labels),
             registry: prometheus_client::registry::Registry::default(),
         };
@@ -208,7 +230,49 @@ impl Metrics {
             "Bytes the open Shape streams reckon to hold (limit: max_total_stream_bytes)",
             m.stream_bytes.clone(),
         );
+        registry.register(
+            "tamrm_pool_size",
+            "Trajectories in the task's pool (read at scrape time)",
+            m.pool_size.clone(),
+        );
+        registry.register(
+            "tamrm_pool_best_score",
+            "Highest episode score in the task's pool; no series while the pool is empty",
+            m.pool_best.clone(),
+        );
+        registry.register(
+            "tamrm_pool_worst_score",
+            "Lowest episode score in the task's pool; no series while the pool is empty",
+            m.pool_worst.clone(),
+        );
         Metrics { registry, ..m }
+    }
+
+    /// Sets the pool gauges from the tasks `tasks` holds now: a series per task label
+    /// (the tasks past the label cap together), none for a task deleted since.
+    fn pool_gauges(&self, tasks: &crate::registry::Registry) {
+        let mut pools: HashMap<TaskLabel, (usize, Option<(f64, f64)>)> = HashMap::new();
+        for task in tasks.all() {
+            let stats = task.stats();
+            let (size, range) = pools.entry(self.labels.label(task.key())).or_default();
+            *size += stats.pool_size;
+            if stats.pool_size > 0 {
+                let (worst, best) = (stats.worst_score, stats.best_score);
+                *range = Some(range.map_or((worst, best), |(w, b)| (w.min(worst), b.max(best))));
+            }
+        }
+        self.pool_size.clear();
+        self.pool_best.clear();
+        self.pool_worst.clear();
+        for (label, (size, range)) in pools {
+            self.pool_size
+                .get_or_create(&label)
+                .set(i64::try_from(size).unwrap_or(i64::MAX));
+            if let Some((worst, best)) = range {
+                self.pool_best.get_or_create(&label).set(best);
+                self.pool_worst.get_or_create(&label).set(worst);
+            }
+        }
     }
 
     /// The recorder of one open Shape stream on `task`: counts as an open stream until
@@ -235,8 +299,12 @@ impl Metrics {
     }
 
     /// The Prometheus text exposition (format 0.0.4) of every metric, with the gauges of
-    /// tasks and reserved stream bytes and the store's syncs read from `tasks` now.
+    /// tasks, pools and reserved stream bytes and the store's syncs read from `tasks` now,
+    /// and the `process_*` metrics from `/proc`.
     pub fn render(&self, tasks: &crate::registry::Registry) -> Result<String, std::fmt::Error> {
+        let _one = self.scraping.lock();
+        self.pool_gauges(tasks);
+        self.process.update();
         let count = tasks.len();
         self.tasks.set(i64::try_from(count).unwrap_or(i64::MAX));
         if let Some(syncs) = tasks.store_syncs() {

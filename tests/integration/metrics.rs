@@ -6,7 +6,7 @@ use tamrm::proto;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// `GET path` over a fresh HTTP/1.1 connection: (status code, body).
-async fn http_get(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
+pub(crate) async fn http_get(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
     let mut conn = tokio::net::TcpStream::connect(addr).await.unwrap();
     let req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
     conn.write_all(req.as_bytes()).await.unwrap();
@@ -22,18 +22,18 @@ async fn http_get(addr: std::net::SocketAddr, path: &str) -> (u16, String) {
 }
 
 /// The exposition of the server's metrics endpoint.
-async fn scrape(addr: std::net::SocketAddr) -> Metrics {
+pub(crate) async fn scrape(addr: std::net::SocketAddr) -> Metrics {
     let (status, body) = http_get(addr, "/metrics").await;
     assert_eq!(status, 200, "{body}");
     Metrics(body)
 }
 
-struct Metrics(String);
+pub(crate) struct Metrics(pub(crate) String);
 
 impl Metrics {
     /// The value of the sample `name` whose labels are exactly `labels`; `None` if there
     /// is no such series.
-    fn get(&self, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
+    pub(crate) fn get(&self, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
         self.0.lines().find_map(|line| {
             let (series, value) = line.rsplit_once(' ')?;
             let (n, rest) = match series.split_once('{') {
@@ -51,7 +51,7 @@ impl Metrics {
 
     /// Like [`Metrics::get`], but the series must exist.
     #[track_caller]
-    fn value(&self, name: &str, labels: &[(&str, &str)]) -> f64 {
+    pub(crate) fn value(&self, name: &str, labels: &[(&str, &str)]) -> f64 {
         self.get(name, labels)
             .unwrap_or_else(|| panic!("no series {name}{labels:?} in:\n{}", self.0))
     }
