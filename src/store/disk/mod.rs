@@ -25,11 +25,15 @@
 //! what its snapshot lacks), this module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
 
 mod codec;
+mod damage;
 mod dir;
 mod entry;
 mod files;
+mod header;
 mod load;
 mod log;
+mod repair;
+mod sealed;
 mod snapshot;
 mod writer;
 
@@ -51,8 +55,10 @@ use codec::{TaskFile, FILE_FORMAT};
 use dir::{open_dir, OpenedDir};
 use entry::Entry;
 use files::{dir_name, err, fsync_dir, write_atomic};
+pub use repair::RepairReport;
+use sealed::seal;
 use snapshot::write_pool_file;
-use writer::{Change, ClientEnds, Log, PoolChange, Queue, Stats};
+use writer::{end_counts, Change, ClientEnds, Log, PoolChange, Queue, Stats};
 
 const CREATING: &str = ".creating-";
 const DELETING: &str = ".deleting-";
@@ -61,6 +67,8 @@ const LOG_FILE: &str = "commits.log";
 /// State shared by the store's handles and its writer thread.
 struct Shared {
     root: PathBuf,
+    /// The data dir's id (`tamrm.json`), sealed into the files it writes.
+    dir_id: String,
     log_path: PathBuf,
     /// task id → its directory, pool and snapshot state, for the tasks that exist.
     tasks: Mutex<HashMap<String, Entry>>,
@@ -152,9 +160,11 @@ impl DiskStore {
             log_file: file,
             log_path,
             log_len: len,
+            dir_id,
         } = open_dir(&root, &stats)?;
         let shared = Arc::new(Shared {
             root,
+            dir_id: sealed::dir_id_text(&dir_id),
             log_path: log_path.clone(),
             tasks: Mutex::new(HashMap::new()),
             io: Mutex::new(Log {
@@ -165,6 +175,8 @@ impl DiskStore {
                 in_log: Default::default(),
                 compact_at: log_limit,
                 loaded: false,
+                dir_id,
+                stopped: false,
             }),
             queue: Mutex::new(Queue::default()),
             wake: Condvar::new(),
@@ -275,10 +287,10 @@ impl Shared {
             config: *config,
         };
         let task_path = staging.join("task.json");
-        let bytes = serde_json::to_vec_pretty(&task).map_err(|e| err(&task_path, e))?;
+        let bytes = seal(&task_path, &task, Some(&self.dir_id))?;
         write_atomic(&task_path, &bytes, syncs)?;
         let pool = Pool::new(config.pool_capacity as usize);
-        write_pool_file(&staging, &pool, Counters::default(), syncs)?;
+        write_pool_file(&staging, &pool, Counters::default(), &self.dir_id, syncs)?;
         fsync_dir(&staging.join("traj"), syncs)?;
         fs::rename(&staging, &final_dir).map_err(|e| err(&final_dir, format!("rename: {e}")))?;
         fsync_dir(&tasks, syncs)?;
@@ -433,6 +445,10 @@ impl Store for DiskStore {
         self.inner.shared.stopping.store(true, Ordering::Release);
     }
 
+    async fn stopped(&self) -> Result<(), StoreError> {
+        self.run(|s| s.record_clean_stop()).await
+    }
+
     async fn save_counters(
         &self,
         id: &str,
@@ -470,21 +486,6 @@ impl Store for DiskStore {
             )
         })?
     }
-}
-
-/// The episode ends the offers of `ops` name, per client: (env, episodes ended).
-fn end_counts(ops: &[PoolOp]) -> ClientEnds {
-    let mut out = ClientEnds::new();
-    for op in ops {
-        if let PoolOp::Offer { end: Some(m), .. } = op {
-            let count = (m.env, m.episode.saturating_add(1));
-            match out.iter_mut().find(|(c, _)| *c == m.client) {
-                Some((_, counts)) => counts.push(count),
-                None => out.push((m.client.clone(), vec![count])),
-            }
-        }
-    }
-    out
 }
 
 #[cfg(test)]
