@@ -10,23 +10,22 @@
 //! version is applied; one that leaves a gap is corruption. Records of ended episodes
 //! are merged with the task's `ends.json` (counts only grow, so any order is right), and
 //! so are records of counters (each counter the larger of the two), whose version must
-//! not be past the task's. A
-//! torn last group is dropped; anything else that fails its checks is corruption,
-//! reported naming the log file.
+//! not be past the task's. What the log holds past its valid groups is judged by
+//! [`super::damage`]: a torn write past the acknowledged end is cut, anything else is
+//! refused naming the log file, the offset and what each task can be restored at.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
-use super::files::{err, fsync_dir, remove_tmp_files, traj_path, write_atomic};
-use super::sealed::read_own;
-use std::os::unix::fs::FileExt;
-
 use super::damage::{judge, open_header, Judged};
+use super::files::{err, fsync_dir, remove_tmp_files, traj_path, write_atomic};
 use super::header::{HEADER_LEN, HEADER_V1_LEN};
 use super::log::{Record, Scan};
+use super::sealed::read_own;
 use super::snapshot::read_ends_file;
 use super::writer::Log;
 use super::{checked, Entry, Shared, CREATING, DELETING};

@@ -4,8 +4,9 @@
 //! (data dir version [`FORMAT_VERSION`]) documented in `docs/storage.md`:
 //!
 //! ```text
-//! DATA_DIR/tamrm.json                      {"format": 2}
-//! DATA_DIR/commits.log                     pool changes since the snapshots (log.rs)
+//! DATA_DIR/tamrm.json                      {"format": 4, "dir_id": …, "checksum": …}
+//! DATA_DIR/commits.log                     a header (header.rs), then the pool changes
+//!                                          since the snapshots (log.rs)
 //! DATA_DIR/tasks/<name>/task.json          {"format": 1, "task_id": …, "config": …}
 //! DATA_DIR/tasks/<name>/pool.json          {"format": 1, "pool_version": …, "next_seq": …,
 //!                                           "seqs": […], "episodes_completed": …, "steps_shaped": …}
@@ -18,11 +19,14 @@
 //! start replays the log over the snapshots and keeps it: neither writes snapshots, so
 //! both take a time bounded by the log's size limit, not by the trajectories added.
 //!
-//! Split by job: [`codec`] (the files' bytes), [`log`] (the log's bytes), [`files`]
-//! (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the group
-//! commit thread and compaction), [`load`] (start-up and replay), [`dir`] (the data dir's
-//! lock, format marker and log file at open), [`entry`] (a task's state in memory and
-//! what its snapshot lacks), this module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
+//! Split by job: [`codec`] (the files' bytes), [`sealed`] (the JSON files' checksum and
+//! data dir id), [`log`] (the log's bytes), [`header`] (the log's header: where its
+//! acknowledged part ends, how the server stopped), [`damage`] (a torn write or a loss),
+//! [`files`] (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the
+//! group commit thread and compaction), [`load`] (start-up and replay), [`repair`] (the
+//! clean stop and `tamrm repair`), [`dir`] (the data dir's lock, format marker and log
+//! file at open), [`entry`] (a task's state in memory and what its snapshot lacks), this
+//! module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
 
 mod codec;
 mod damage;
