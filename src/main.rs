@@ -1,8 +1,9 @@
 //! The `tamrm` binary: `tamrm serve`, `tamrm healthcheck`, `tamrm key`, `tamrm compact`,
-//! and the client-side `tamrm tasks`, `tamrm pool` and `tamrm completions` (src/cli/).
+//! `tamrm repair`, and the client-side `tamrm tasks`, `tamrm pool` and `tamrm completions`
+//! (src/cli/).
 
 use clap::{CommandFactory, Parser};
-use tamrm::settings::{Cli, Command, CompactArgs, HealthcheckArgs, KeyArgs, Settings};
+use tamrm::settings::{Cli, Command, CompactArgs, HealthcheckArgs, KeyArgs, RepairArgs, Settings};
 use tracing_subscriber::EnvFilter;
 
 #[cfg(feature = "mimalloc")]
@@ -26,6 +27,7 @@ fn main() -> std::process::ExitCode {
         Command::Tasks(t) => return tamrm::cli::tasks(&t),
         Command::Pool(p) => return tamrm::cli::pool(&p),
         Command::Completions(c) => return tamrm::cli::completions(&c, &mut Cli::command()),
+        Command::Repair(r) => return repair(&r),
     };
     let settings = match Settings::resolve(&args) {
         Ok(s) => s,
@@ -153,7 +155,8 @@ fn compact(args: &CompactArgs) -> std::process::ExitCode {
         runtime
             .block_on(async {
                 let tasks = tamrm::store::Store::load(&store).await?.len();
-                store.compact().await.map(|()| tasks)
+                store.compact().await?;
+                tamrm::store::Store::stopped(&store).await.map(|()| tasks)
             })
             .map_err(|e| e.to_string())
     })();
@@ -167,6 +170,27 @@ fn compact(args: &CompactArgs) -> std::process::ExitCode {
         }
         Err(e) => {
             eprintln!("cannot compact {}: {e}", dir.display());
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// `tamrm repair`: what a start of the data dir would lose and, with `--accept-loss`, the
+/// log cut to what is valid. Exit 0 when the data dir starts (as it was, or repaired), 1
+/// when it would not and nothing was changed, or on an error.
+fn repair(args: &RepairArgs) -> std::process::ExitCode {
+    let dir = &args.data_dir;
+    match tamrm::store::DiskStore::repair(dir, args.accept_loss) {
+        Ok(report) => {
+            report.lines.iter().for_each(|l| println!("{l}"));
+            match report.would_lose {
+                true => std::process::ExitCode::FAILURE,
+                false => std::process::ExitCode::SUCCESS,
+            }
+        }
+        Err(e) => {
+            eprintln!("cannot repair {}: {e}", dir.display());
+            eprintln!("(damage in a task's files is not cut away: move that task's directory out of tasks/ to start without it)");
             std::process::ExitCode::FAILURE
         }
     }

@@ -47,6 +47,21 @@ pub enum Command {
     Pool(crate::cli::PoolArgs),
     /// The shell completion script of `tamrm` (bash, zsh, fish, elvish, powershell).
     Completions(crate::cli::CompletionsArgs),
+    /// Say what a start of a stopped server's damaged data dir would lose and, with
+    /// --accept-loss, cut its commit log to what is valid so that it starts
+    /// (deployment.md, "Backups and damage").
+    Repair(RepairArgs),
+}
+
+/// Flags of `tamrm repair`.
+#[derive(Debug, Clone, Args)]
+pub struct RepairArgs {
+    /// The data dir (the server using it must be stopped: it holds the dir's lock).
+    #[arg(long, env = "TAMRM_DATA_DIR")]
+    pub data_dir: std::path::PathBuf,
+    /// Cut the log to what is valid, losing the acknowledged changes after it.
+    #[arg(long)]
+    pub accept_loss: bool,
 }
 
 /// Flags of `tamrm compact`.

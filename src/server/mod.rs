@@ -66,6 +66,8 @@ pub struct RunningServer {
     shutdown: CancellationToken,
     grace: Duration,
     registry: Arc<Registry>,
+    /// Told when the server has stopped (a data dir records a clean stop).
+    store: Arc<dyn Store>,
     serve: JoinHandle<Result<(), tonic::transport::Error>>,
     closing: TaskTracker,
     metrics_addr: Option<SocketAddr>,
@@ -101,6 +103,9 @@ impl RunningServer {
         self.closing.close();
         let _ = tokio::time::timeout(linger::LINGER, self.closing.wait()).await;
         self.registry.flush_counters().await;
+        if let Err(e) = self.store.stopped().await {
+            tracing::warn!(error = %e, "the clean stop is not recorded; the next start treats it as a crash");
+        }
     }
 }
 
@@ -136,7 +141,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
     tracing::info!("{}", store.describe());
     let metrics = settings.metrics_listen.map(|_| Arc::new(Metrics::new()));
     let store = telemetry::metered(store, metrics.as_ref());
-    let (registry, restored) = Registry::open(store, settings.limits).await?;
+    let (registry, restored) = Registry::open(store.clone(), settings.limits).await?;
     if restored.tasks > 0 {
         tracing::info!(
             tasks = restored.tasks,
@@ -256,6 +261,7 @@ pub async fn start(settings: &Settings) -> Result<RunningServer, StartError> {
         shutdown,
         grace: Duration::from_secs(settings.shutdown_grace_secs),
         registry,
+        store,
         serve,
         closing,
         metrics_addr,

@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::core::{ActionSeq, Pool, TaskConfig};
 
-pub use disk::{DiskStore, FORMAT_VERSION};
+pub use disk::{DiskStore, RepairReport, FORMAT_VERSION};
 pub use ends::{EndedEpisodes, MAX_REMEMBERED_CLIENTS};
 pub use error::StoreError;
 pub use memory::MemoryStore;
@@ -228,6 +228,12 @@ pub trait Store: Send + Sync + 'static {
     /// compaction in progress and starts no other (its log holds every change), so that
     /// a stop never waits for snapshots to be written.
     fn stopping(&self) {}
+    /// The server has stopped: every change is committed (counters included) and nothing
+    /// more will be. A data dir records that it stopped cleanly, so that the next start
+    /// can tell a log cut short from a crash's torn write (docs/storage.md).
+    async fn stopped(&self) -> Result<(), StoreError> {
+        Ok(())
+    }
     /// Persists the counters without a pool change.
     async fn save_counters(
         &self,

@@ -79,6 +79,10 @@ impl Store for MeteredStore {
         self.inner.stopping()
     }
 
+    async fn stopped(&self) -> Result<(), StoreError> {
+        self.inner.stopped().await
+    }
+
     async fn save_counters(
         &self,
         id: &str,

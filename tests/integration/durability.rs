@@ -701,8 +701,8 @@ async fn a_corrupt_commit_log_is_refused_naming_it() {
         }
     }
     let log = base.path().join("commits.log");
-    // Header (12 bytes), then the first group's head and its first record.
-    flip_byte(&log, 12 + 16);
+    // Header (44 bytes), then the first group's head and its first record.
+    flip_byte(&log, 44 + 16);
     assert_refused(base.path(), &log, "flipped byte in the commit log").await;
 }
 

@@ -8,6 +8,7 @@ mod common;
 mod auth;
 mod bad_input;
 mod cli;
+mod damage;
 mod dashboard;
 mod durability;
 mod faults;

@@ -13,12 +13,17 @@ use crate::store::Counters;
 /// to the commit log (`commits.log`), 3 since a graceful stop logs counters (kind-3
 /// records) and leaves the log to the next start instead of writing snapshots. Older
 /// dirs are migrated at open: a format-1 dir is a format-3 dir with an empty log, a
-/// format-2 dir one whose log has no kind-3 records.
-pub const FORMAT_VERSION: u32 = 3;
+/// format-2 dir one whose log has no kind-3 records. 4 since the log's header records
+/// the data dir's id, where the log's acknowledged part ends and whether the server
+/// stopped cleanly, and the JSON files are sealed with a checksum (`sealed.rs`); a
+/// format-3 dir's log is rewritten with that header at its first start.
+pub const FORMAT_VERSION: u32 = 4;
 /// The first data dir format, still opened (and migrated).
 pub(super) const FORMAT_V1: u32 = 1;
 /// The second data dir format, still opened (and migrated).
 pub(super) const FORMAT_V2: u32 = 2;
+/// The third data dir format, still opened (and migrated).
+pub(super) const FORMAT_V3: u32 = 3;
 /// Version of `task.json`, `pool.json` and the trajectory files (unchanged by format 2).
 pub(super) const FILE_FORMAT: u32 = 1;
 
@@ -28,12 +33,14 @@ const HEADER: usize = 8 + 4 + 4 + 4 + 8 + 8 + 8;
 
 /// `DATA_DIR/tamrm.json`.
 #[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub(super) struct RootFile {
     pub format: u32,
 }
 
 /// `tasks/<name>/task.json`.
 #[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub(super) struct TaskFile {
     pub format: u32,
     pub task_id: String,
@@ -42,6 +49,7 @@ pub(super) struct TaskFile {
 
 /// `tasks/<name>/pool.json`, the commit point of a task's pool.
 #[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub(super) struct PoolFile {
     pub format: u32,
     pub pool_version: u64,
@@ -74,6 +82,7 @@ impl PoolFile {
 /// `tasks/<name>/ends.json`: the episode ends committed per client (SPEC §9), as of the
 /// last snapshot (the log's kind-2 records add to it). Absent: none (older data dirs).
 #[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub(super) struct EndsFile {
     pub format: u32,
     pub clients: Vec<ClientEnds>,
@@ -81,6 +90,7 @@ pub(super) struct EndsFile {
 
 /// One client's ended episodes in `ends.json`.
 #[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub(super) struct ClientEnds {
     pub client: String,
     /// (env, episodes ended).
@@ -100,9 +110,9 @@ pub(super) fn check_format(format: u32) -> Result<(), String> {
 /// The data dir format in `tamrm.json` is one this build opens (the current one, or an
 /// older one, which it migrates).
 pub(super) fn check_root_format(format: u32) -> Result<(), String> {
-    if ![FORMAT_V1, FORMAT_V2, FORMAT_VERSION].contains(&format) {
+    if ![FORMAT_V1, FORMAT_V2, FORMAT_V3, FORMAT_VERSION].contains(&format) {
         return Err(format!(
-            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION}, and {FORMAT_V1} and {FORMAT_V2} which it migrates)"
+            "on-disk format {format} is not supported by this build (format {FORMAT_VERSION}, and {FORMAT_V1} to {FORMAT_V3} which it migrates)"
         ));
     }
     Ok(())

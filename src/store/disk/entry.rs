@@ -147,7 +147,7 @@ pub(super) fn write_dirty(
             ends: p.ends.as_ref().map(|(ends, _)| ends),
         })
         .collect();
-    let seqs = write_snapshots(&jobs, &shared.stats.syncs, &shared.stopping)?;
+    let seqs = write_snapshots(&jobs, &shared.dir_id, &shared.stats.syncs, &shared.stopping)?;
     let mut tasks = shared.tasks.lock();
     for ((id, parts), seqs) in dirty.iter().zip(seqs) {
         let Some(e) = tasks.get_mut(id) else { continue };

@@ -10,18 +10,22 @@
 //! version is applied; one that leaves a gap is corruption. Records of ended episodes
 //! are merged with the task's `ends.json` (counts only grow, so any order is right), and
 //! so are records of counters (each counter the larger of the two), whose version must
-//! not be past the task's. A
-//! torn last group is dropped; anything else that fails its checks is corruption,
-//! reported naming the log file.
+//! not be past the task's. What the log holds past its valid groups is judged by
+//! [`super::damage`]: a torn write past the acknowledged end is cut, anything else is
+//! refused naming the log file, the offset and what each task can be restored at.
 
 use std::collections::{HashMap, HashSet};
 use std::fs;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use super::codec::{check_format, decode_trajectory, decode_trajectory_bytes, PoolFile, TaskFile};
-use super::files::{err, fsync_dir, read_json, remove_tmp_files, traj_path};
-use super::log::{scan, Record, Scan};
+use super::damage::{judge, open_header, Judged};
+use super::files::{err, fsync_dir, remove_tmp_files, traj_path, write_atomic};
+use super::header::{HEADER_LEN, HEADER_V1_LEN};
+use super::log::{Record, Scan};
+use super::sealed::read_own;
 use super::snapshot::read_ends_file;
 use super::writer::Log;
 use super::{checked, Entry, Shared, CREATING, DELETING};
@@ -42,16 +46,16 @@ struct Loaded {
     ends_changed: bool,
 }
 
-fn load_task(dir: &Path) -> Result<StoredTask, StoreError> {
+fn load_task(dir: &Path, dir_id: &str) -> Result<StoredTask, StoreError> {
     remove_tmp_files(dir)?;
     let task_path = dir.join("task.json");
-    let task: TaskFile = read_json(&task_path)?;
+    let task: TaskFile = read_own(&task_path, dir_id)?;
     checked(&task_path, check_format(task.format))?;
     task.config
         .check()
         .map_err(|e| err(&task_path, format!("config.{}: {}", e.field, e.message)))?;
     let pool_path = dir.join("pool.json");
-    let pf: PoolFile = read_json(&pool_path)?;
+    let pf: PoolFile = read_own(&pool_path, dir_id)?;
     checked(&pool_path, check_format(pf.format))?;
     let mut trajectories = Vec::with_capacity(pf.seqs.len());
     for &seq in &pf.seqs {
@@ -113,7 +117,7 @@ fn load_snapshots(shared: &Shared) -> Result<Vec<Loaded>, StoreError> {
         if !path.is_dir() {
             return Err(err(&path, "unexpected file in the tasks directory"));
         }
-        let task = load_task(&path)?;
+        let task = load_task(&path, &shared.dir_id)?;
         if let Some(other) = seen.insert(task.id.clone(), path.clone()) {
             return Err(err(
                 &path,
@@ -122,7 +126,7 @@ fn load_snapshots(shared: &Shared) -> Result<Vec<Loaded>, StoreError> {
         }
         let listed = task.pool.seqs().to_vec();
         let snap = (task.pool.version(), task.counters);
-        let ends = read_ends_file(&path)?;
+        let ends = read_ends_file(&path, &shared.dir_id)?;
         out.push(Loaded {
             task,
             dir: path,
@@ -287,27 +291,96 @@ fn replay(path: &Path, scan: &Scan, tasks: &mut [Loaded]) -> Result<Vec<usize>, 
     Ok(changed)
 }
 
-/// Loads every task: snapshots, then the log replayed over them. The log is kept (its
-/// torn last group, if any, cut off and the cut synced), and appended to from its end.
-pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, StoreError> {
-    let mut tasks = load_snapshots(shared)?;
+/// The data dir as a start finds it: every task's snapshot with the log's valid groups
+/// replayed over it, and the log judged ([`judge`]).
+pub(super) struct Found {
+    tasks: Vec<Loaded>,
+    changed: usize,
+    pub judged: Judged,
+    bytes: Vec<u8>,
+}
+
+impl Found {
+    /// Per task, the pool version it would be restored at.
+    pub fn versions(&self) -> Vec<(String, u64)> {
+        let mut v: Vec<_> = self
+            .tasks
+            .iter()
+            .map(|t| (t.task.id.clone(), t.task.pool.version()))
+            .collect();
+        v.sort();
+        v
+    }
+}
+
+/// Reads every snapshot and the log, judges the log and replays its valid groups.
+pub(super) fn inspect(shared: &Shared, log: &Log) -> Result<Found, StoreError> {
     let bytes = fs::read(&log.path).map_err(|e| err(&log.path, format!("read: {e}")))?;
-    let scan = checked(&log.path, scan(&bytes))?;
-    let changed = replay(&log.path, &scan, &mut tasks)?;
+    let judged = judge(&bytes, &log.dir_id);
+    if let (true, Some(why)) = (judged.foreign, &judged.refusal) {
+        // Before the tasks' files, which name the data dir too: the two files that
+        // disagree are named, whichever of them is the stranger.
+        return Err(err(&log.path, why));
+    }
+    let mut tasks = load_snapshots(shared)?;
+    let changed = replay(&log.path, &judged.scan, &mut tasks)?.len();
+    Ok(Found {
+        tasks,
+        changed,
+        judged,
+        bytes,
+    })
+}
+
+/// The error of a start that would lose acknowledged changes: the problem (with its
+/// offset), per task the version that can be restored, and the way forward.
+fn refusal(shared: &Shared, log: &Log, problem: &str, found: &Found) -> StoreError {
+    let versions = found.versions();
+    let mut list: Vec<String> = versions
+        .iter()
+        .take(20)
+        .map(|(id, v)| format!("{id:?} at version {v}"))
+        .collect();
+    if versions.len() > 20 {
+        list.push(format!("and {} more", versions.len() - 20));
+    }
+    let list = match list.is_empty() {
+        true => "no tasks".to_string(),
+        false => list.join(", "),
+    };
+    err(
+        &log.path,
+        format!(
+            "{problem}. Starting would lose acknowledged changes, so the server does not start. What can be restored: {list}. `tamrm repair --data-dir {}` shows what would be lost; with --accept-loss it cuts the log to what is valid",
+            shared.root.display()
+        ),
+    )
+}
+
+/// Loads every task: snapshots, then the log replayed over them. The log is kept (its
+/// torn last group, if any, cut off and the cut synced), and appended to from its end;
+/// its header is rewritten as open (and synced) before anything is appended. A log that
+/// lost acknowledged changes, or is damaged in the middle, is refused ([`judge`]).
+pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, StoreError> {
+    let found = inspect(shared, log)?;
+    if let Some(problem) = &found.judged.refusal {
+        return Err(refusal(shared, log, problem, &found));
+    }
+    let scan = &found.judged.scan;
     let records: usize = scan.groups.iter().map(|g| g.records.len()).sum();
     if records > 0 {
-        tracing::info!(log = %log.path.display(), groups = scan.groups.len(), records, tasks_changed = changed.len(), "replayed the commit log");
+        tracing::info!(log = %log.path.display(), groups = scan.groups.len(), records, tasks_changed = found.changed, "replayed the commit log");
     }
-    let mut end = bytes.len() as u64;
-    if let Some((offset, len, why)) = &scan.torn {
-        tracing::warn!(log = %log.path.display(), offset, bytes = len, problem = %why, "dropping the incomplete last group of the commit log (a write interrupted by a crash, never acknowledged)");
-        shared.stats.syncs.add();
-        log.file
-            .set_len(*offset)
-            .and_then(|()| log.file.sync_all())
-            .map_err(|e| err(&log.path, format!("cut the torn last group off: {e}")))?;
-        end = *offset;
+    let end = found.judged.valid_end;
+    if let Some((offset, len, why)) = &found.judged.torn {
+        tracing::warn!(log = %log.path.display(), offset, bytes = len, problem = %why, "dropping the incomplete last group of the commit log");
     }
+    if found.judged.v1 {
+        migrate_v1(shared, log, &found.bytes[..end as usize])?;
+    } else {
+        cut(shared, log, end)?;
+    }
+    let Found { tasks, judged, .. } = found;
     {
         let mut entries = shared.tasks.lock();
         entries.clear();
@@ -325,14 +398,52 @@ pub(super) fn load(shared: &Shared, log: &mut Log) -> Result<Vec<StoredTask>, St
             );
         }
     }
-    log.len = end;
-    log.in_log = scan
+    log.in_log = judged
+        .scan
         .groups
         .iter()
         .flat_map(|g| g.records.iter().map(|r| r.task().to_string()))
         .collect();
-    log.compact_at = shared.log_limit.max(super::log::HEADER_LEN + 1);
+    log.compact_at = shared.log_limit.max(HEADER_LEN + 1);
     log.failed = None;
+    log.stopped = false;
     log.loaded = true;
     Ok(tasks.into_iter().map(|t| t.task).collect())
+}
+
+/// Cuts the log at `end` (at least its header) and marks it open, synced, unless it is
+/// that already: what follows is appended after `end`, and every group before it is
+/// durable (groups written without a sync of their own included).
+pub(super) fn cut(shared: &Shared, log: &mut Log, end: u64) -> Result<(), StoreError> {
+    let end = end.max(HEADER_LEN);
+    let want = open_header(log.dir_id, end).encode();
+    let mut head = vec![0u8; want.len()];
+    let same = log.len == end && log.file.read_exact_at(&mut head, 0).is_ok() && head == want;
+    if !same {
+        shared.stats.syncs.add();
+        log.file
+            .set_len(end)
+            .and_then(|()| log.file.write_all_at(&want, 0))
+            .and_then(|()| log.file.sync_all())
+            .map_err(|e| err(&log.path, format!("cut at offset {end} and mark open: {e}")))?;
+    }
+    log.len = end;
+    Ok(())
+}
+
+/// Rewrites a format-1 log (data dir format 3) with the format-2 header: the header,
+/// then its valid groups, written atomically.
+pub(super) fn migrate_v1(shared: &Shared, log: &mut Log, valid: &[u8]) -> Result<(), StoreError> {
+    let groups = valid.get(HEADER_V1_LEN as usize..).unwrap_or(&[]);
+    let mut bytes = open_header(log.dir_id, HEADER_LEN + groups.len() as u64).encode();
+    bytes.extend_from_slice(groups);
+    write_atomic(&log.path, &bytes, &shared.stats.syncs)?;
+    log.file = fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&log.path)
+        .map_err(|e| err(&log.path, format!("open: {e}")))?;
+    log.len = bytes.len() as u64;
+    tracing::info!(log = %log.path.display(), "rewrote the commit log with a header recording the data dir, its acknowledged end and how the server stopped (log format 2)");
+    Ok(())
 }

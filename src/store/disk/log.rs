@@ -3,7 +3,7 @@
 //! records of the pool changes it acknowledged together. Pure: no I/O.
 //!
 //! ```text
-//! header  "TAMRMLOG" | format u32
+//! header  "TAMRMLOG" | format u32 | … (header.rs)
 //! group   "TGRP" | payload length n u32 | record count u32 | n bytes of records | CRC-32 u32
 //! record  kind u8 (1) | id length u32 | id | base version u64 | version u64 | next_seq u64
 //!         | episodes_completed u64 | steps_shaped u64 | k u32 | k seqs u64 (the pool after)
@@ -27,24 +27,12 @@ use super::codec::encode_trajectory;
 use crate::core::Pool;
 use crate::store::Counters;
 
-const LOG_MAGIC: &[u8; 8] = b"TAMRMLOG";
-/// Version of the commit log's layout.
-pub(super) const LOG_FORMAT: u32 = 1;
-/// Bytes of the log header.
-pub(super) const HEADER_LEN: u64 = 12;
 const GROUP_MAGIC: &[u8; 4] = b"TGRP";
 /// magic, payload length, record count.
 const GROUP_HEAD: usize = 12;
 const KIND_COMMIT: u8 = 1;
 const KIND_ENDS: u8 = 2;
 const KIND_COUNTERS: u8 = 3;
-
-/// The header of an empty log.
-pub(super) fn header() -> Vec<u8> {
-    let mut b = LOG_MAGIC.to_vec();
-    b.extend_from_slice(&LOG_FORMAT.to_le_bytes());
-    b
-}
 
 /// One record of the log.
 #[derive(Debug, Clone, PartialEq)]
@@ -331,68 +319,83 @@ pub(super) struct Group {
     pub records: Vec<Record>,
 }
 
-/// What a log holds: its complete groups and, if the last one is incomplete or fails its
-/// checksum with nothing valid after it, that torn tail (never acknowledged).
+/// Where a log stops being valid: the offset of the first group that fails its checks,
+/// why, and the valid groups found after it (none: the damage is the log's tail).
+#[derive(Debug)]
+pub(super) struct Damage {
+    pub offset: u64,
+    pub why: String,
+    /// The group has a valid checksum but its records do not decode: never a torn write.
+    pub undecodable: bool,
+    /// The valid groups after the damage, up to the next damage (their changes are lost
+    /// if the log is cut at `offset`).
+    pub later: Vec<Group>,
+}
+
+/// What a log holds: its valid groups from the header on and, if it has one, where that
+/// stops ([`Damage`]). Whether the damage is a torn last write (never acknowledged) or
+/// the loss of acknowledged changes is decided by the caller, from the header.
 #[derive(Debug)]
 pub(super) struct Scan {
     pub groups: Vec<Group>,
-    /// Offset, length and problem of a torn last group.
-    pub torn: Option<(u64, u64, String)>,
+    pub damage: Option<Damage>,
 }
 
-/// Reads a whole log. Errors (corruption, reported naming the log file) are: a bad
-/// header; a group that fails its checks while a valid group follows it (so it is not
-/// the torn last write); a group with a valid checksum whose records do not decode.
-pub(super) fn scan(b: &[u8]) -> Result<Scan, String> {
-    if b.len() < HEADER_LEN as usize || &b[..8] != LOG_MAGIC {
-        return Err("not a tamrm commit log (bad or truncated header)".into());
+/// The group at `off` decoded, and the offset after it; or why not, and whether its
+/// checksum was valid (then its records are what fails).
+fn read_group(b: &[u8], off: usize) -> Result<(Group, usize), (String, bool)> {
+    let (payload, count, next) = group_at(b, off).map_err(|why| (why, false))?;
+    let mut r = Reader { b: payload, pos: 0 };
+    let mut records = Vec::with_capacity(count.min(payload.len()));
+    for i in 0..count {
+        records.push(decode_record(&mut r).map_err(|m| (format!("record {i}: {m}"), true))?);
     }
-    let format = u32::from_le_bytes([b[8], b[9], b[10], b[11]]);
-    if format != LOG_FORMAT {
-        return Err(format!(
-            "commit log format {format} is not supported by this build (format {LOG_FORMAT})"
-        ));
+    if r.pos != payload.len() {
+        let m = format!("{} bytes after its {count} records", payload.len() - r.pos);
+        return Err((m, true));
     }
-    let mut off = HEADER_LEN as usize;
+    let group = Group {
+        offset: off as u64,
+        records,
+    };
+    Ok((group, next))
+}
+
+/// Reads a whole log whose groups start at `start` (after its header).
+pub(super) fn scan(b: &[u8], start: usize) -> Scan {
+    let mut off = start;
     let mut groups = Vec::new();
     while off < b.len() {
-        match group_at(b, off) {
-            Ok((payload, count, next)) => {
-                let mut r = Reader { b: payload, pos: 0 };
-                let mut records = Vec::with_capacity(count.min(payload.len()));
-                for i in 0..count {
-                    records.push(
-                        decode_record(&mut r)
-                            .map_err(|m| format!("group at offset {off}, record {i}: {m}"))?,
-                    );
-                }
-                if r.pos != payload.len() {
-                    return Err(format!(
-                        "group at offset {off}: {} bytes after its {count} records",
-                        payload.len() - r.pos
-                    ));
-                }
-                groups.push(Group {
-                    offset: off as u64,
-                    records,
-                });
+        match read_group(b, off) {
+            Ok((g, next)) => {
+                groups.push(g);
                 off = next;
             }
-            Err(why) => {
-                if let Some(p) = (off + 1..b.len()).find(|&p| group_at(b, p).is_ok()) {
-                    return Err(format!(
-                        "the group at offset {off} is corrupt ({why}), and a valid group follows at offset {p}"
-                    ));
+            Err((why, undecodable)) => {
+                let mut later = Vec::new();
+                if let Some(mut p) = (off + 1..b.len()).find(|&p| group_at(b, p).is_ok()) {
+                    while let Ok((g, next)) = read_group(b, p) {
+                        later.push(g);
+                        p = next;
+                    }
                 }
-                let torn = (off as u64, (b.len() - off) as u64, why);
-                return Ok(Scan {
+                let damage = Damage {
+                    offset: off as u64,
+                    why,
+                    undecodable,
+                    later,
+                };
+                return Scan {
                     groups,
-                    torn: Some(torn),
-                });
+                    damage: Some(damage),
+                };
             }
         }
     }
-    Ok(Scan { groups, torn: None })
+    Scan {
+        groups,
+        damage: None,
+    }
 }
 
 #[cfg(test)]

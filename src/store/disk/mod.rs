@@ -4,8 +4,9 @@
 //! (data dir version [`FORMAT_VERSION`]) documented in `docs/storage.md`:
 //!
 //! ```text
-//! DATA_DIR/tamrm.json                      {"format": 2}
-//! DATA_DIR/commits.log                     pool changes since the snapshots (log.rs)
+//! DATA_DIR/tamrm.json                      {"format": 4, "dir_id": …, "checksum": …}
+//! DATA_DIR/commits.log                     a header (header.rs), then the pool changes
+//!                                          since the snapshots (log.rs)
 //! DATA_DIR/tasks/<name>/task.json          {"format": 1, "task_id": …, "config": …}
 //! DATA_DIR/tasks/<name>/pool.json          {"format": 1, "pool_version": …, "next_seq": …,
 //!                                           "seqs": […], "episodes_completed": …, "steps_shaped": …}
@@ -18,18 +19,25 @@
 //! start replays the log over the snapshots and keeps it: neither writes snapshots, so
 //! both take a time bounded by the log's size limit, not by the trajectories added.
 //!
-//! Split by job: [`codec`] (the files' bytes), [`log`] (the log's bytes), [`files`]
-//! (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the group
-//! commit thread and compaction), [`load`] (start-up and replay), [`dir`] (the data dir's
-//! lock, format marker and log file at open), [`entry`] (a task's state in memory and
-//! what its snapshot lacks), this module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
+//! Split by job: [`codec`] (the files' bytes), [`sealed`] (the JSON files' checksum and
+//! data dir id), [`log`] (the log's bytes), [`header`] (the log's header: where its
+//! acknowledged part ends, how the server stopped), [`damage`] (a torn write or a loss),
+//! [`files`] (atomic writes and fsyncs), [`snapshot`] (a task's files), [`writer`] (the
+//! group commit thread and compaction), [`load`] (start-up and replay), [`repair`] (the
+//! clean stop and `tamrm repair`), [`dir`] (the data dir's lock, format marker and log
+//! file at open), [`entry`] (a task's state in memory and what its snapshot lacks), this
+//! module (the [`Store`]). Blocking file work other than the log's runs on tokio's blocking pool.
 
 mod codec;
+mod damage;
 mod dir;
 mod entry;
 mod files;
+mod header;
 mod load;
 mod log;
+mod repair;
+mod sealed;
 mod snapshot;
 mod writer;
 
@@ -51,8 +59,10 @@ use codec::{TaskFile, FILE_FORMAT};
 use dir::{open_dir, OpenedDir};
 use entry::Entry;
 use files::{dir_name, err, fsync_dir, write_atomic};
+pub use repair::RepairReport;
+use sealed::seal;
 use snapshot::write_pool_file;
-use writer::{Change, ClientEnds, Log, PoolChange, Queue, Stats};
+use writer::{end_counts, Change, ClientEnds, Log, PoolChange, Queue, Stats};
 
 const CREATING: &str = ".creating-";
 const DELETING: &str = ".deleting-";
@@ -61,6 +71,8 @@ const LOG_FILE: &str = "commits.log";
 /// State shared by the store's handles and its writer thread.
 struct Shared {
     root: PathBuf,
+    /// The data dir's id (`tamrm.json`), sealed into the files it writes.
+    dir_id: String,
     log_path: PathBuf,
     /// task id → its directory, pool and snapshot state, for the tasks that exist.
     tasks: Mutex<HashMap<String, Entry>>,
@@ -152,9 +164,11 @@ impl DiskStore {
             log_file: file,
             log_path,
             log_len: len,
+            dir_id,
         } = open_dir(&root, &stats)?;
         let shared = Arc::new(Shared {
             root,
+            dir_id: sealed::dir_id_text(&dir_id),
             log_path: log_path.clone(),
             tasks: Mutex::new(HashMap::new()),
             io: Mutex::new(Log {
@@ -165,6 +179,8 @@ impl DiskStore {
                 in_log: Default::default(),
                 compact_at: log_limit,
                 loaded: false,
+                dir_id,
+                stopped: false,
             }),
             queue: Mutex::new(Queue::default()),
             wake: Condvar::new(),
@@ -275,10 +291,10 @@ impl Shared {
             config: *config,
         };
         let task_path = staging.join("task.json");
-        let bytes = serde_json::to_vec_pretty(&task).map_err(|e| err(&task_path, e))?;
+        let bytes = seal(&task_path, &task, Some(&self.dir_id))?;
         write_atomic(&task_path, &bytes, syncs)?;
         let pool = Pool::new(config.pool_capacity as usize);
-        write_pool_file(&staging, &pool, Counters::default(), syncs)?;
+        write_pool_file(&staging, &pool, Counters::default(), &self.dir_id, syncs)?;
         fsync_dir(&staging.join("traj"), syncs)?;
         fs::rename(&staging, &final_dir).map_err(|e| err(&final_dir, format!("rename: {e}")))?;
         fsync_dir(&tasks, syncs)?;
@@ -433,6 +449,10 @@ impl Store for DiskStore {
         self.inner.shared.stopping.store(true, Ordering::Release);
     }
 
+    async fn stopped(&self) -> Result<(), StoreError> {
+        self.run(|s| s.record_clean_stop()).await
+    }
+
     async fn save_counters(
         &self,
         id: &str,
@@ -470,21 +490,6 @@ impl Store for DiskStore {
             )
         })?
     }
-}
-
-/// The episode ends the offers of `ops` name, per client: (env, episodes ended).
-fn end_counts(ops: &[PoolOp]) -> ClientEnds {
-    let mut out = ClientEnds::new();
-    for op in ops {
-        if let PoolOp::Offer { end: Some(m), .. } = op {
-            let count = (m.env, m.episode.saturating_add(1));
-            match out.iter_mut().find(|(c, _)| *c == m.client) {
-                Some((_, counts)) => counts.push(count),
-                None => out.push((m.client.clone(), vec![count])),
-            }
-        }
-    }
-    out
 }
 
 #[cfg(test)]

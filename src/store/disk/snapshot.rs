@@ -9,9 +9,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::codec::{check_format, encode_trajectory, ClientEnds, EndsFile, PoolFile, FILE_FORMAT};
-use super::files::{
-    err, fsync_many, read_json, tmp_path, traj_path, write_atomic, write_unsynced, Syncs,
-};
+use super::files::{err, fsync_many, tmp_path, traj_path, write_atomic, write_unsynced, Syncs};
+use super::sealed::{read_own, seal};
 use crate::core::Pool;
 use crate::store::{Counters, EndedEpisodes, StoreError};
 
@@ -20,11 +19,11 @@ pub(super) fn write_pool_file(
     dir: &Path,
     pool: &Pool,
     counters: Counters,
+    dir_id: &str,
     syncs: &Syncs,
 ) -> Result<(), StoreError> {
     let path = dir.join("pool.json");
-    let bytes =
-        serde_json::to_vec_pretty(&PoolFile::new(pool, counters)).map_err(|e| err(&path, e))?;
+    let bytes = seal(&path, &PoolFile::new(pool, counters), Some(dir_id))?;
     write_atomic(&path, &bytes, syncs)
 }
 
@@ -50,6 +49,7 @@ pub(super) struct SnapshotJob<'a> {
 /// it wrote by then is unlisted, so the next start removes it.
 pub(super) fn write_snapshots(
     jobs: &[SnapshotJob<'_>],
+    dir_id: &str,
     syncs: &Syncs,
     stop: &AtomicBool,
 ) -> Result<Vec<Option<Vec<u64>>>, StoreError> {
@@ -84,13 +84,12 @@ pub(super) fn write_snapshots(
     for j in jobs {
         if let Some((pool, counters, _)) = j.pool {
             let path = j.dir.join("pool.json");
-            let bytes = serde_json::to_vec_pretty(&PoolFile::new(pool, counters))
-                .map_err(|e| err(&path, e))?;
+            let bytes = seal(&path, &PoolFile::new(pool, counters), Some(dir_id))?;
             renames.push((path, bytes));
         }
         if let Some(ends) = j.ends {
             let path = j.dir.join(ENDS_FILE);
-            let bytes = ends_bytes(&path, ends)?;
+            let bytes = ends_bytes(&path, ends, dir_id)?;
             renames.push((path, bytes));
         }
     }
@@ -136,7 +135,7 @@ pub(super) const ABANDONED: &str =
     "snapshots abandoned: the server is stopping (the commit log keeps every change)";
 
 /// The bytes of `ends.json` (at `path`) holding `ends`.
-fn ends_bytes(path: &Path, ends: &EndedEpisodes) -> Result<Vec<u8>, StoreError> {
+fn ends_bytes(path: &Path, ends: &EndedEpisodes, dir_id: &str) -> Result<Vec<u8>, StoreError> {
     let file = EndsFile {
         format: FILE_FORMAT,
         clients: ends
@@ -147,17 +146,17 @@ fn ends_bytes(path: &Path, ends: &EndedEpisodes) -> Result<Vec<u8>, StoreError> 
             })
             .collect(),
     };
-    serde_json::to_vec(&file).map_err(|e| err(path, e))
+    seal(path, &file, Some(dir_id))
 }
 
 /// Reads `ends.json`; none recorded if it does not exist.
-pub(super) fn read_ends_file(dir: &Path) -> Result<EndedEpisodes, StoreError> {
+pub(super) fn read_ends_file(dir: &Path, dir_id: &str) -> Result<EndedEpisodes, StoreError> {
     let path = dir.join(ENDS_FILE);
     let mut ends = EndedEpisodes::default();
     if !path.exists() {
         return Ok(ends);
     }
-    let file: EndsFile = read_json(&path)?;
+    let file: EndsFile = read_own(&path, dir_id)?;
     check_format(file.format).map_err(|m| err(&path, m))?;
     for c in file.clients {
         ends.merge(&c.client, c.episodes_ended);

@@ -21,10 +21,11 @@ use tokio::sync::oneshot;
 
 use super::entry::write_dirty;
 use super::files::{err, Syncs};
-use super::log::{encode_group, HEADER_LEN};
+use super::header::{Header, HEADER_LEN, OPEN};
+use super::log::encode_group;
 use super::Shared;
 use crate::core::Pool;
-use crate::store::{Counters, StoreError};
+use crate::store::{Counters, PoolOp, StoreError};
 
 /// At most this many bytes of records go into one group (a larger single record still
 /// forms a group of its own).
@@ -92,6 +93,27 @@ pub(super) struct Log {
     pub compact_at: u64,
     /// `load` has run: the tasks are known and the log is replayed and truncated.
     pub loaded: bool,
+    /// The data dir's id, which the log's header names.
+    pub dir_id: [u8; 16],
+    /// A graceful stop recorded itself in the header: nothing more is appended.
+    pub stopped: bool,
+}
+
+impl Log {
+    /// Writes the log's header saying that it ends at `acked_end` and is in `state`
+    /// (`sync`: and makes the whole file durable).
+    pub fn write_header(&self, acked_end: u64, state: u32, sync: bool) -> std::io::Result<()> {
+        let h = Header {
+            dir_id: self.dir_id,
+            acked_end,
+            state,
+        };
+        self.file.write_all_at(&h.encode(), 0)?;
+        match sync {
+            true => self.file.sync_data(),
+            false => Ok(()),
+        }
+    }
 }
 
 /// A failed append to the log.
@@ -220,6 +242,11 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
         // Versions after the commits already accepted into this group.
         let mut pending: HashMap<String, u64> = HashMap::new();
         for req in batch {
+            if log.stopped {
+                let m = "the server has stopped: the commit log takes no more changes";
+                reply(req, Err(err(&log.path, m)));
+                continue;
+            }
             if let Some(f) = &log.failed {
                 let m = match f.in_sync {
                     true => format!(
@@ -301,6 +328,13 @@ fn write_group(shared: &Shared, log: &mut Log, batch: Vec<CommitReq>) {
         return;
     }
     log.len += bytes.len() as u64;
+    if sync {
+        // Before the acknowledgements: the header never says more than is durable, and
+        // the next group's fdatasync makes it durable in turn (header.rs).
+        if let Err(e) = log.write_header(log.len, OPEN, false) {
+            tracing::warn!(file = %log.path.display(), error = %e, "could not record the acknowledged end in the commit log's header");
+        }
+    }
     shared.stats.groups.fetch_add(1, Ordering::Relaxed);
     // Pool changes, not records: a record of one task's group holds several.
     let n: u64 = accepted
@@ -360,8 +394,10 @@ pub(super) fn checkpoint(shared: &Shared, log: &mut Log) -> Result<(), StoreErro
 pub(super) fn truncate(shared: &Shared, log: &mut Log) -> Result<(), StoreError> {
     if log.len > HEADER_LEN {
         shared.stats.syncs.add();
-        log.file
-            .set_len(HEADER_LEN)
+        // The header first: a crash before the cut leaves groups past the acknowledged
+        // end, which replay skips (they are in the snapshots).
+        log.write_header(HEADER_LEN, OPEN, false)
+            .and_then(|()| log.file.set_len(HEADER_LEN))
             .and_then(|()| log.file.sync_all())
             .map_err(|e| err(&log.path, format!("truncate: {e}")))?;
     }
@@ -369,4 +405,19 @@ pub(super) fn truncate(shared: &Shared, log: &mut Log) -> Result<(), StoreError>
     log.in_log.clear();
     log.compact_at = shared.log_limit.max(HEADER_LEN + 1);
     Ok(())
+}
+
+/// The episode ends the offers of `ops` name, per client: (env, episodes ended).
+pub(super) fn end_counts(ops: &[PoolOp]) -> ClientEnds {
+    let mut out = ClientEnds::new();
+    for op in ops {
+        if let PoolOp::Offer { end: Some(m), .. } = op {
+            let count = (m.env, m.episode.saturating_add(1));
+            match out.iter_mut().find(|(c, _)| *c == m.client) {
+                Some((_, counts)) => counts.push(count),
+                None => out.push((m.client.clone(), vec![count])),
+            }
+        }
+    }
+    out
 }

@@ -13,10 +13,24 @@ fn pools() -> (Pool, Pool) {
     (base, after)
 }
 
+const H: usize = 12;
+
 fn log_of(groups: &[Vec<u8>]) -> Vec<u8> {
-    let mut b = header();
+    let mut b = vec![0u8; H];
     groups.iter().for_each(|g| b.extend_from_slice(g));
     b
+}
+
+/// The log's groups, which must all be valid.
+fn valid(b: &[u8]) -> Scan {
+    let s = scan(b, H);
+    assert!(s.damage.is_none(), "{:?}", s.damage);
+    s
+}
+
+/// Where and why the log stops being valid.
+fn damage(b: &[u8]) -> Damage {
+    scan(b, H).damage.expect("damage")
 }
 
 #[test]
@@ -28,8 +42,7 @@ fn records_round_trip() {
     };
     let r = encode_commit("a/b", &base, &after, c);
     let g = encode_group(&[&r, &r]);
-    let s = scan(&log_of(&[g])).unwrap();
-    assert!(s.torn.is_none());
+    let s = valid(&log_of(&[g]));
     let Record::Commit(rec) = &s.groups[0].records[1] else {
         panic!("a commit record")
     };
@@ -52,7 +65,7 @@ fn ends_records_round_trip_beside_commits() {
     let (base, after) = pools();
     let c = encode_commit("t", &base, &after, Counters::default());
     let e = encode_ends("t", "client-1", &[(0, 3), (7, u64::MAX)]);
-    let s = scan(&log_of(&[encode_group(&[&c, &e])])).unwrap();
+    let s = valid(&log_of(&[encode_group(&[&c, &e])]));
     let records = &s.groups[0].records;
     assert!(matches!(&records[0], Record::Commit(r) if r.version == 3));
     assert_eq!(
@@ -66,30 +79,37 @@ fn ends_records_round_trip_beside_commits() {
     assert_eq!(records[1].task(), "t");
     let mut unknown = e.clone();
     unknown[0] = 9;
-    let err = scan(&log_of(&[encode_group(&[&unknown])])).unwrap_err();
-    assert!(err.contains("unknown record kind 9"), "{err}");
+    let d = damage(&log_of(&[encode_group(&[&unknown])]));
+    assert!(
+        d.undecodable && d.why.contains("unknown record kind 9"),
+        "{d:?}"
+    );
 }
 
 #[test]
-fn a_torn_last_group_is_dropped_and_an_earlier_bad_one_is_corruption() {
+fn a_cut_last_group_is_a_damaged_tail_and_an_earlier_bad_one_has_groups_after_it() {
     let (base, after) = pools();
     let c = encode_commit("t", &base, &after, Counters::default());
     let e = encode_ends("t", "client", &[(0, 1), (1, 2)]);
     let g = encode_group(&[&c, &e]);
     let full = log_of(&[g.clone(), g.clone()]);
-    let first_end = HEADER_LEN as usize + g.len();
+    let first_end = H + g.len();
     for cut in first_end..full.len() {
-        let s = scan(&full[..cut]).unwrap();
+        let s = scan(&full[..cut], H);
         assert_eq!(s.groups.len(), 1, "cut {cut}");
-        assert_eq!(s.torn.is_some(), cut > first_end, "cut {cut}");
+        match &s.damage {
+            Some(d) => {
+                assert!(cut > first_end && d.offset == first_end as u64 && d.later.is_empty())
+            }
+            None => assert_eq!(cut, first_end),
+        }
     }
-    for i in HEADER_LEN as usize..first_end {
+    for i in H..first_end {
         let mut b = full.clone();
         b[i] ^= 0x10;
-        assert!(scan(&b).is_err(), "flip at {i}");
-    }
-    for cut in 0..HEADER_LEN as usize {
-        assert!(scan(&full[..cut]).is_err());
+        let d = damage(&b);
+        assert_eq!((d.offset, d.later.len()), (H as u64, 1), "flip at {i}");
+        assert_eq!(d.later[0].offset, first_end as u64);
     }
 }
 
@@ -100,7 +120,7 @@ fn counters_records_round_trip_and_truncations_fail() {
         steps_shaped: 12_345,
     };
     let r = encode_counters("a/b:c", 17, c);
-    let s = scan(&log_of(&[encode_group(&[&r])])).unwrap();
+    let s = valid(&log_of(&[encode_group(&[&r])]));
     assert_eq!(
         s.groups[0].records,
         vec![Record::Counters(CountersAt {
@@ -112,7 +132,10 @@ fn counters_records_round_trip_and_truncations_fail() {
     assert_eq!(s.groups[0].records[0].task(), "a/b:c");
     // A record cut short inside a valid group is corruption, not a torn tail.
     for cut in 1..r.len() {
-        let err = scan(&log_of(&[encode_group(&[&r[..cut]])])).unwrap_err();
-        assert!(err.contains("record 0"), "cut {cut}: {err}");
+        let d = damage(&log_of(&[encode_group(&[&r[..cut]])]));
+        assert!(
+            d.undecodable && d.why.contains("record 0"),
+            "cut {cut}: {d:?}"
+        );
     }
 }
