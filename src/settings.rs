@@ -49,7 +49,7 @@ pub enum Command {
     Completions(crate::cli::CompletionsArgs),
     /// Say what a start of a stopped server's damaged data dir would lose and, with
     /// --accept-loss, cut its commit log to what is valid so that it starts
-    /// (deployment.md, "Backups and damage").
+    /// (docs/backups.md).
     Repair(RepairArgs),
 }
 
