@@ -49,6 +49,31 @@ if (( size > MAX_SDIST_BYTES )); then
     exit 1
 fi
 
+# The sdist must build on its own: its manifests must name only files it holds (a
+# [[bench]] whose file is left out fails the build). The full build from it is
+# benchmarks/wheel_cost.py's source install.
+unpacked=$(mktemp -d)
+tar xzf "$sdist" -C "$unpacked"
+"$TOOLS/bin/python" - "$(ls -d "$unpacked"/tamrm-*)" <<'PY'
+import sys, tomllib
+from pathlib import Path
+root = Path(sys.argv[1])
+missing = []
+for manifest in root.rglob("Cargo.toml"):
+    toml = tomllib.loads(manifest.read_text())
+    for kind, folder in (("bin", "src/bin"), ("bench", "benches"), ("test", "tests"), ("example", "examples")):
+        for target in toml.get(kind, []):
+            path = target.get("path") or f"{folder}/{target['name']}.rs"
+            if not (manifest.parent / path).exists():
+                missing.append(f"{manifest.relative_to(root)}: [[{kind}]] {target['name']} at {path}")
+    lib = toml.get("lib", {}).get("path")
+    if lib and not (manifest.parent / lib).exists():
+        missing.append(f"{manifest.relative_to(root)}: [lib] at {lib}")
+if missing:
+    sys.exit("build-wheels: the sdist lacks files its manifests name:\n  " + "\n  ".join(missing))
+PY
+rm -rf "$unpacked"
+
 step "the static server binary (docker/build.sh)"
 bin=$(cd "$REPO_ROOT" && TAMRM_BINARY_ONLY=1 bash docker/build.sh)
 
