@@ -34,7 +34,6 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[2]
-EXTRAS_FREE_DEPS = ["protobuf>=7.35.1,<8", "numpy>=1.24", "gymnasium>=1.0,<2", "typing_extensions"]
 
 
 def stripped_size(binary: Path, tmp: Path) -> int:
@@ -74,10 +73,19 @@ def timed_install(target: str, house: Path, tmp: Path, name: str, env: dict[str,
     return time.perf_counter() - t0
 
 
+def requirements(wheel: Path) -> list[str]:
+    """The wheel's own dependencies without extras (its METADATA's Requires-Dist)."""
+    with zipfile.ZipFile(wheel) as z:
+        meta = next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))
+        lines = z.read(meta).decode().splitlines()
+    found = [line.split(":", 1)[1].strip() for line in lines if line.startswith("Requires-Dist:")]
+    return [r for r in found if "extra ==" not in r]
+
+
 def install_times(wheel: Path, sdist: Path | None, tmp: Path) -> None:
     house = tmp / "wheelhouse"
     pip = [sys.executable, "-m", "pip", "download", "-q", "-d", str(house)]
-    subprocess.run([*pip, *EXTRAS_FREE_DEPS, "maturin>=1.9,<2"], check=True)
+    subprocess.run([*pip, *requirements(wheel), "maturin>=1.9,<2"], check=True)
     env = {**os.environ, "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     t_wheel = timed_install(str(wheel), house, tmp, "from-wheel", env)
     print(f"- install from the wheel: {t_wheel:.1f} s")
